@@ -1,0 +1,1 @@
+//! The `qemd` command line (to be implemented).

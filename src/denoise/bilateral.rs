@@ -1,0 +1,198 @@
+//! Bilateral denoising (Fleishman, Drori and Cohen-Or 2003), the paper's comparator.
+//!
+//! Each pass moves every vertex along its normal `n` by `Σ w h / Σ w` over its neighbours `q`,
+//! with `t = |q − v|`, `h = n·(q − v)`, `w = exp(−t²/2σc²)·exp(−h²/2σs²)`. `σc` is the mean edge
+//! length of the *input* (fixed for all passes); the neighbours are all points within `2σc`
+//! (`v` excluded); `σs²` is the population variance of `h` over the neighbours (at least
+//! `1e-12·σc²`). Meshes use area-weighted vertex normals of the current positions; point clouds
+//! use PCA normals over the k nearest neighbours, their neighbours are those k nearest that lie
+//! within `2σc`, and `σc` is the mean distance from a point to its nearest other point.
+
+use glam::DVec3;
+use rayon::prelude::*;
+
+use super::normals::{pca_normals, vertex_normals};
+use super::qem::{StepCounts, count_duplicates};
+use super::{DenoiseError, NormalWeighting, Output, Params, Stats, Timer, origin_of};
+use crate::geometry::ExactSum;
+use crate::neighbours::{KnnIndex, MeshAdjacency};
+use crate::points::Faces;
+
+/// Mean length of the unique undirected edges, summed exactly.
+pub fn mean_edge_length(pos: &[DVec3], adjacency: &MeshAdjacency) -> f64 {
+    adjacency
+        .edges()
+        .map(|(a, b)| (pos[a as usize] - pos[b as usize]).length())
+        .collect::<ExactSum>()
+        .mean()
+}
+
+/// Mean distance from each finite point to its nearest other point, summed exactly.
+pub fn mean_spacing(index: &KnnIndex) -> Result<f64, DenoiseError> {
+    let (lists, radii) = index.knn_all(2)?;
+    let mut sum = ExactSum::new();
+    for (i, r) in radii.iter().enumerate() {
+        if lists.get(i).len() == 2 {
+            sum.add(r.sqrt());
+        }
+    }
+    Ok(sum.mean())
+}
+
+/// The bilateral offset of `v` along unit normal `n` from its neighbours' positions.
+fn offset(
+    v: DVec3,
+    n: DVec3,
+    nbrs: impl Iterator<Item = DVec3>,
+    sigma_c: f64,
+    buf: &mut Vec<(f64, f64)>,
+) -> f64 {
+    buf.clear();
+    for q in nbrs {
+        let d = q - v;
+        buf.push((d.length_squared(), n.dot(d)));
+    }
+    if buf.is_empty() || n == DVec3::ZERO {
+        return 0.0;
+    }
+    let m = buf.len() as f64;
+    let mean = buf.iter().map(|x| x.1).sum::<f64>() / m;
+    let var = buf.iter().map(|x| (x.1 - mean) * (x.1 - mean)).sum::<f64>() / m;
+    let sc2 = sigma_c * sigma_c;
+    let ss2 = var.max(1e-12 * sc2);
+    let (mut sw, mut swh) = (0.0, 0.0);
+    for &(t2, h) in buf.iter() {
+        let w = (-t2 / (2.0 * sc2)).exp() * (-h * h / (2.0 * ss2)).exp();
+        sw += w;
+        swh += w * h;
+    }
+    if sw > 0.0 { swh / sw } else { 0.0 }
+}
+
+fn finish(v: DVec3, n: DVec3, h: f64) -> (DVec3, StepCounts) {
+    let w = n * h;
+    if h != 0.0 && w.is_finite() {
+        (
+            v + w,
+            StepCounts {
+                moved: 1,
+                singular: 0,
+                max_step: w.length(),
+            },
+        )
+    } else {
+        (v, StepCounts::default())
+    }
+}
+
+fn book(results: Vec<(DVec3, StepCounts)>, stats: &mut Stats) -> Vec<DVec3> {
+    let mut out = Vec::with_capacity(results.len());
+    for (p, c) in results {
+        c.book(stats);
+        out.push(p);
+    }
+    out
+}
+
+/// Bilateral mesh denoising, `params.iterations` passes.
+///
+/// # Errors
+/// Face indices out of range.
+pub fn mesh(pos: &[DVec3], faces: &Faces, params: &Params) -> Result<Output, DenoiseError> {
+    let mut timer = Timer::start();
+    let mut stats = Stats {
+        points: pos.len() as u64,
+        ..Stats::default()
+    };
+    let adjacency = MeshAdjacency::build(pos.len(), faces)?;
+    let sigma_c = mean_edge_length(pos, &adjacency);
+    let origin = origin_of(pos);
+    let mut cur = pos.to_vec();
+    for pass in 0..params.iterations {
+        let vn = vertex_normals(&cur, faces, NormalWeighting::Area);
+        if pass == 0 {
+            stats.zero_area_faces = vn.zero_area_faces;
+            stats.unreferenced = vn.unreferenced;
+        }
+        timer.lap("normals", &mut stats);
+        let index = KnnIndex::build(&cur, origin)?;
+        let r2 = 4.0 * sigma_c * sigma_c;
+        timer.lap("neighbours", &mut stats);
+        let results: Vec<(DVec3, StepCounts)> = (0..cur.len())
+            .into_par_iter()
+            .with_min_len(512)
+            .map_init(
+                || (Vec::new(), Vec::new()),
+                |(list, buf), v| {
+                    list.clear();
+                    index.within_at(index.local(v), r2, list);
+                    let nbrs = list
+                        .iter()
+                        .filter(|&&u| u as usize != v)
+                        .map(|&u| cur[u as usize]);
+                    let h = offset(cur[v], vn.normals[v], nbrs, sigma_c, buf);
+                    finish(cur[v], vn.normals[v], h)
+                },
+            )
+            .collect();
+        cur = book(results, &mut stats);
+        timer.lap("solve", &mut stats);
+    }
+    Ok(Output {
+        positions: cur,
+        stats,
+    })
+}
+
+/// Bilateral point-cloud denoising over k nearest neighbours with PCA normals.
+///
+/// # Errors
+/// Fewer finite points than k.
+pub fn points(pos: &[DVec3], origin: DVec3, params: &Params) -> Result<Output, DenoiseError> {
+    let mut timer = Timer::start();
+    let mut stats = Stats {
+        points: pos.len() as u64,
+        non_finite: pos.iter().filter(|p| !p.is_finite()).count() as u64,
+        ..Stats::default()
+    };
+    let k = params.k();
+    let sigma_c = mean_spacing(&KnnIndex::build(pos, origin)?)?;
+    let r2 = 4.0 * sigma_c * sigma_c;
+    let mut cur = pos.to_vec();
+    for pass in 0..params.iterations {
+        let index = KnnIndex::build(&cur, origin)?;
+        let (lists, _) = index.knn_all(k)?;
+        if pass == 0 {
+            stats.duplicates = count_duplicates(&cur, &lists);
+        }
+        timer.lap("neighbours", &mut stats);
+        let (normals, degenerate) = pca_normals(&cur, &lists);
+        if pass == 0 {
+            stats.degenerate_neighbourhoods = degenerate;
+        }
+        timer.lap("normals", &mut stats);
+        let results: Vec<(DVec3, StepCounts)> = (0..cur.len())
+            .into_par_iter()
+            .with_min_len(1024)
+            .map_init(Vec::new, |buf, i| {
+                let v = cur[i];
+                if !v.is_finite() {
+                    return (v, StepCounts::default());
+                }
+                let nbrs = lists
+                    .get(i)
+                    .iter()
+                    .filter(|&&u| u as usize != i && index.dist2(i, u as usize) <= r2)
+                    .map(|&u| cur[u as usize]);
+                let h = offset(v, normals[i], nbrs, sigma_c, buf);
+                finish(v, normals[i], h)
+            })
+            .collect();
+        cur = book(results, &mut stats);
+        timer.lap("solve", &mut stats);
+    }
+    Ok(Output {
+        positions: cur,
+        stats,
+    })
+}

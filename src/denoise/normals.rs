@@ -1,0 +1,128 @@
+//! Normals: mesh face and vertex normals, PCA point normals.
+
+use glam::DVec3;
+use rayon::prelude::*;
+
+use super::NormalWeighting;
+use crate::geometry::pca_normal;
+use crate::neighbours::Neighbourhoods;
+use crate::points::Faces;
+
+/// Unnormalised face normal: `(v1 − v0) × (v2 − v0)` for a triangle, the sum of the fan
+/// triangles' cross products for a polygon (twice the area vector). Zero for zero-area faces.
+#[inline]
+pub fn face_cross(pos: &[DVec3], face: &[u32]) -> DVec3 {
+    let mut n = DVec3::ZERO;
+    if face.len() >= 3 {
+        let p0 = pos[face[0] as usize];
+        for i in 1..face.len() - 1 {
+            n += (pos[face[i] as usize] - p0).cross(pos[face[i + 1] as usize] - p0);
+        }
+    }
+    n
+}
+
+/// Unit face normals (zero for zero-area faces) and the number of zero-area faces.
+pub fn face_normals(pos: &[DVec3], faces: &Faces) -> (Vec<DVec3>, u64) {
+    let normals: Vec<DVec3> = (0..faces.len())
+        .into_par_iter()
+        .with_min_len(4096)
+        .map(|f| face_cross(pos, faces.face(f)).normalize_or_zero())
+        .collect();
+    let zero = normals.iter().filter(|n| **n == DVec3::ZERO).count() as u64;
+    (normals, zero)
+}
+
+/// Mesh vertex normals from the incident faces.
+#[derive(Debug, Clone)]
+pub struct VertexNormals {
+    /// Unit normal per vertex; zero where the faces' normals cancel or there is no face.
+    pub normals: Vec<DVec3>,
+    /// Faces with zero area.
+    pub zero_area_faces: u64,
+    /// Vertices that no face references.
+    pub unreferenced: u64,
+}
+
+/// Vertex normals as `weighting` says: the normalised sum of the incident faces' cross products
+/// (`Area`) or of their unit normals (`Mean`). Faces are accumulated in face order, so the sums are
+/// the same bits on every run.
+pub fn vertex_normals(pos: &[DVec3], faces: &Faces, weighting: NormalWeighting) -> VertexNormals {
+    let mut acc = vec![DVec3::ZERO; pos.len()];
+    let mut referenced = vec![false; pos.len()];
+    let mut zero_area = 0u64;
+    for f in faces.iter() {
+        let c = face_cross(pos, f);
+        if c == DVec3::ZERO {
+            zero_area += 1;
+        }
+        let n = match weighting {
+            NormalWeighting::Area => c,
+            NormalWeighting::Mean => c.normalize_or_zero(),
+        };
+        for &v in f {
+            acc[v as usize] += n;
+            referenced[v as usize] = true;
+        }
+    }
+    let normals = acc.into_iter().map(DVec3::normalize_or_zero).collect();
+    VertexNormals {
+        normals,
+        zero_area_faces: zero_area,
+        unreferenced: referenced.iter().filter(|r| !**r).count() as u64,
+    }
+}
+
+/// PCA normal of every point over its neighbour list (coordinates taken relative to the point).
+/// Returns the unit normals (zero where the neighbourhood is coincident, collinear or has fewer than
+/// three points) and the number of such degenerate neighbourhoods among finite points.
+pub fn pca_normals(pos: &[DVec3], lists: &Neighbourhoods) -> (Vec<DVec3>, u64) {
+    let normals: Vec<DVec3> = (0..pos.len())
+        .into_par_iter()
+        .with_min_len(1024)
+        .map(|i| {
+            let v = pos[i];
+            let list = lists.get(i);
+            pca_normal(list.iter().map(|&u| pos[u as usize] - v)).map_or(DVec3::ZERO, |f| f.normal)
+        })
+        .collect();
+    let degenerate = normals
+        .iter()
+        .zip(pos)
+        .filter(|(n, p)| **n == DVec3::ZERO && p.is_finite())
+        .count() as u64;
+    (normals, degenerate)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn area_and_mean_vertex_normals() {
+        // Two triangles folded along the x axis: a large one in z = 0 and a small one in y = 0.
+        let pos = vec![
+            DVec3::ZERO,
+            DVec3::X,
+            DVec3::new(0.0, 10.0, 0.0),
+            DVec3::new(0.0, 0.0, -1.0),
+            DVec3::new(5.0, 5.0, 5.0),
+        ];
+        let faces = Faces::from_triangles(&[[0, 1, 2], [0, 3, 1]]);
+        let area = vertex_normals(&pos, &faces, NormalWeighting::Area);
+        let mean = vertex_normals(&pos, &faces, NormalWeighting::Mean);
+        // Face normals: (0, 0, 10) and (0, -1, 0) unnormalised.
+        assert!((area.normals[0] - DVec3::new(0.0, -1.0, 10.0).normalize()).length() < 1e-15);
+        assert!((mean.normals[0] - DVec3::new(0.0, -1.0, 1.0).normalize()).length() < 1e-15);
+        assert_eq!(area.normals[4], DVec3::ZERO);
+        assert_eq!(area.unreferenced, 1);
+        assert_eq!(area.zero_area_faces, 0);
+        let degenerate = Faces::from_triangles(&[[0, 1, 1]]);
+        assert_eq!(
+            vertex_normals(&pos, &degenerate, NormalWeighting::Area).zero_area_faces,
+            1
+        );
+        let (fnorm, zero) = face_normals(&pos, &faces);
+        assert_eq!((fnorm[0], zero), (DVec3::Z, 0));
+    }
+}

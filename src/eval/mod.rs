@@ -1,0 +1,1 @@
+//! Evaluation tools (to be implemented).

@@ -1,0 +1,565 @@
+//! Streaming readers and writers for scan and mesh formats.
+//!
+//! # Brief overview
+//!
+//! * A [`Source`] describes its file in a [`SourceInfo`] (format, record [`Schema`], point count,
+//!   whether it carries faces, and the format's own header in [`Meta`]) and then fills reusable
+//!   [`PointBatch`]es until the points run out. [`Source::finish`] returns the [`Extras`]: the faces
+//!   and whatever else the file holds besides points (other PLY elements, OBJ texture coordinates…).
+//! * A [`Sink`] is created *like* a source ([`create`]): it reproduces the source's header, property
+//!   types and encoding, writes batches, and in [`Sink::finish`] writes the extras and atomically
+//!   renames its temporary file onto the target. A sink that is dropped without `finish` leaves
+//!   nothing behind.
+//! * [`Cloud`] is the in-memory convenience built on the two: read everything, write everything.
+//!
+//! Sinks take positions from `batch.positions` and every other byte of a record from
+//! `batch.records`; they never reorder points. Sources deliver non-finite positions as they are
+//! (the caller decides whether to drop them).
+//!
+//! One backend per format lives in its own module; this module only dispatches.
+
+pub mod obj;
+pub mod off;
+pub mod ply;
+
+use std::fs::File;
+use std::io::{BufWriter, Write};
+use std::path::{Path, PathBuf};
+
+use glam::DVec3;
+use thiserror::Error;
+
+use crate::points::{Faces, PointBatch, ScalarType, Schema};
+
+/// Errors of the I/O layer. Each names the file it is about.
+#[derive(Debug, Error)]
+#[non_exhaustive]
+pub enum IoError {
+    /// The operating system refused an operation.
+    #[error("{path}: {source}", path = .path.display())]
+    Io {
+        /// File concerned.
+        path: PathBuf,
+        /// Underlying error.
+        source: std::io::Error,
+    },
+    /// The file ends before the data its header announces.
+    #[error("{path}: truncated: {detail}", path = .path.display())]
+    Truncated {
+        /// File concerned.
+        path: PathBuf,
+        /// What was expected.
+        detail: String,
+    },
+    /// The header is malformed or inconsistent.
+    #[error("{path}: bad header: {detail}", path = .path.display())]
+    Header {
+        /// File concerned.
+        path: PathBuf,
+        /// What is wrong.
+        detail: String,
+    },
+    /// The body holds data the format does not allow (bad number, face index out of range…).
+    #[error("{path}: {detail}", path = .path.display())]
+    Invalid {
+        /// File concerned.
+        path: PathBuf,
+        /// What is wrong.
+        detail: String,
+    },
+    /// The format could not be told from the extension or content.
+    #[error("{path}: unknown format (expected one of {known})", path = .path.display())]
+    UnknownFormat {
+        /// File concerned.
+        path: PathBuf,
+        /// The supported extensions.
+        known: &'static str,
+    },
+    /// A feature of the file this build does not support.
+    #[error("{path}: unsupported: {detail}", path = .path.display())]
+    Unsupported {
+        /// File concerned.
+        path: PathBuf,
+        /// What is unsupported.
+        detail: String,
+    },
+}
+
+impl IoError {
+    /// Wraps an OS error with the path it concerns.
+    pub fn io(path: &Path, source: std::io::Error) -> IoError {
+        if source.kind() == std::io::ErrorKind::UnexpectedEof {
+            return IoError::Truncated {
+                path: path.to_path_buf(),
+                detail: "unexpected end of file".into(),
+            };
+        }
+        IoError::Io {
+            path: path.to_path_buf(),
+            source,
+        }
+    }
+
+    /// A malformed or inconsistent header.
+    pub fn header(path: &Path, detail: impl Into<String>) -> IoError {
+        IoError::Header {
+            path: path.to_path_buf(),
+            detail: detail.into(),
+        }
+    }
+
+    /// Data the format does not allow.
+    pub fn invalid(path: &Path, detail: impl Into<String>) -> IoError {
+        IoError::Invalid {
+            path: path.to_path_buf(),
+            detail: detail.into(),
+        }
+    }
+
+    /// The file ends early.
+    pub fn truncated(path: &Path, detail: impl Into<String>) -> IoError {
+        IoError::Truncated {
+            path: path.to_path_buf(),
+            detail: detail.into(),
+        }
+    }
+}
+
+/// The supported file formats.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+#[non_exhaustive]
+pub enum Format {
+    /// Stanford PLY (ascii, binary little- and big-endian).
+    Ply,
+    /// Wavefront OBJ.
+    Obj,
+    /// Object File Format.
+    Off,
+}
+
+const KNOWN: &str = ".ply, .obj, .off";
+
+impl Format {
+    /// Tells the format from a file extension (case-insensitive).
+    ///
+    /// # Errors
+    /// [`IoError::UnknownFormat`] for an unknown or missing extension.
+    pub fn from_path(path: &Path) -> Result<Format, IoError> {
+        let ext = path
+            .extension()
+            .and_then(|e| e.to_str())
+            .map(|e| e.to_ascii_lowercase());
+        ext.as_deref()
+            .and_then(Format::from_name)
+            .ok_or_else(|| IoError::UnknownFormat {
+                path: path.to_path_buf(),
+                known: KNOWN,
+            })
+    }
+
+    /// Parses a format name or extension (`ply`, `obj`, `off`).
+    pub fn from_name(name: &str) -> Option<Format> {
+        match name.to_ascii_lowercase().as_str() {
+            "ply" => Some(Format::Ply),
+            "obj" => Some(Format::Obj),
+            "off" => Some(Format::Off),
+            _ => None,
+        }
+    }
+
+    /// Lower-case name, also the canonical extension.
+    pub fn name(self) -> &'static str {
+        match self {
+            Format::Ply => "ply",
+            Format::Obj => "obj",
+            Format::Off => "off",
+        }
+    }
+}
+
+/// Format-specific header information a sink needs to reproduce its source.
+#[derive(Debug, Clone, Default)]
+#[non_exhaustive]
+pub enum Meta {
+    /// No format header: a cloud built in memory, written with the sink format's defaults.
+    #[default]
+    None,
+    /// PLY header (elements, comments, encoding).
+    Ply(ply::PlyMeta),
+    /// OBJ specifics.
+    Obj(obj::ObjMeta),
+    /// OFF specifics.
+    Off(off::OffMeta),
+}
+
+/// What a source says about its file before any point is read.
+#[derive(Debug, Clone)]
+pub struct SourceInfo {
+    /// The file (empty for clouds built in memory).
+    pub path: PathBuf,
+    /// Its format.
+    pub format: Format,
+    /// Layout of the records the source delivers.
+    pub schema: Schema,
+    /// Number of points, when the header declares it.
+    pub len: Option<u64>,
+    /// True when the file declares faces (a mesh).
+    pub has_faces: bool,
+    /// The format's own header.
+    pub meta: Meta,
+}
+
+impl SourceInfo {
+    /// Info for data generated in memory: a packed x, y, z record of type `ty`.
+    pub fn generated(format: Format, ty: ScalarType, len: u64, has_faces: bool) -> SourceInfo {
+        SourceInfo {
+            path: PathBuf::new(),
+            format,
+            schema: Schema::xyz_only(ty),
+            len: Some(len),
+            has_faces,
+            meta: Meta::None,
+        }
+    }
+}
+
+/// Format-specific content besides the points that a sink writes back unchanged.
+#[derive(Debug, Clone, Default)]
+#[non_exhaustive]
+pub enum Trailer {
+    /// Nothing besides points and faces.
+    #[default]
+    None,
+    /// PLY elements other than `vertex`, as raw bytes.
+    Ply(ply::PlyTrailer),
+    /// OBJ lines other than vertex positions.
+    Obj(obj::ObjTrailer),
+    /// OFF face lines.
+    Off(off::OffTrailer),
+}
+
+/// Everything a file holds besides its points.
+#[derive(Debug, Clone, Default)]
+pub struct Extras {
+    /// Polygon faces, when the file has any.
+    pub faces: Option<Faces>,
+    /// Other content, reproduced by a sink of the same format.
+    pub trailer: Trailer,
+}
+
+impl Extras {
+    /// Extras holding only faces (for meshes built in memory).
+    pub fn with_faces(faces: Faces) -> Extras {
+        Extras {
+            faces: Some(faces),
+            trailer: Trailer::None,
+        }
+    }
+}
+
+/// A reader that streams points in batches.
+pub trait Source: Send {
+    /// What the file declares.
+    fn info(&self) -> &SourceInfo;
+
+    /// Clears `batch` (keeping its allocations), then appends up to `max` further points and sets
+    /// `batch.start`. Returns how many points were read; 0 means the points are exhausted.
+    ///
+    /// # Errors
+    /// Truncated or malformed data.
+    fn read_batch(&mut self, batch: &mut PointBatch, max: usize) -> Result<usize, IoError>;
+
+    /// Reads what follows the points and returns it; call after the last batch.
+    ///
+    /// # Errors
+    /// Truncated or malformed data, face indices out of range.
+    fn finish(self: Box<Self>) -> Result<Extras, IoError>;
+}
+
+/// A writer that streams points in batches into a temporary file and renames it at the end.
+pub trait Sink {
+    /// Writes the points of `batch`, positions from `batch.positions`.
+    ///
+    /// # Errors
+    /// Write failures; more points than announced.
+    fn write_batch(&mut self, batch: &PointBatch) -> Result<(), IoError>;
+
+    /// Writes the extras, flushes and moves the file into place.
+    ///
+    /// # Errors
+    /// Write failures; fewer points than announced.
+    fn finish(self: Box<Self>, extras: &Extras) -> Result<(), IoError>;
+}
+
+/// Opens `path` for streaming; the format comes from `format` or else from the extension.
+///
+/// # Errors
+/// Unknown format, unreadable file, malformed header.
+pub fn open(path: &Path, format: Option<Format>) -> Result<Box<dyn Source>, IoError> {
+    let format = match format {
+        Some(f) => f,
+        None => Format::from_path(path)?,
+    };
+    Ok(match format {
+        Format::Ply => Box::new(ply::PlySource::open(path)?),
+        Format::Obj => Box::new(obj::ObjSource::open(path)?),
+        Format::Off => Box::new(off::OffSource::open(path)?),
+    })
+}
+
+/// Creates a sink at `path` that writes `count` points laid out like `like`. The format comes from
+/// `format`, else from the extension. When it equals the source's format, the output keeps the
+/// source's header, encoding and property types.
+///
+/// # Errors
+/// Unknown format, the directory is not writable.
+pub fn create(
+    path: &Path,
+    format: Option<Format>,
+    like: &SourceInfo,
+    count: u64,
+) -> Result<Box<dyn Sink>, IoError> {
+    let format = match format {
+        Some(f) => f,
+        None => Format::from_path(path)?,
+    };
+    Ok(match format {
+        Format::Ply => Box::new(ply::PlySink::create(path, like, count)?),
+        Format::Obj => Box::new(obj::ObjSink::create(path, like, count)?),
+        Format::Off => Box::new(off::OffSink::create(path, like, count)?),
+    })
+}
+
+/// A buffered file that appears at its target path only when committed.
+///
+/// It writes to a temporary file in the target's directory (so the final rename stays on one file
+/// system) and deletes it when dropped uncommitted: a failed run leaves no half-written output.
+pub struct AtomicFile {
+    target: PathBuf,
+    tmp: BufWriter<tempfile::NamedTempFile>,
+}
+
+impl AtomicFile {
+    /// Starts writing towards `target`.
+    ///
+    /// # Errors
+    /// The target's directory does not exist or is not writable.
+    pub fn create(target: &Path) -> Result<AtomicFile, IoError> {
+        let dir = match target.parent() {
+            Some(d) if !d.as_os_str().is_empty() => d,
+            _ => Path::new("."),
+        };
+        let name = target
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        let tmp = tempfile::Builder::new()
+            .prefix(&format!(".{name}."))
+            .suffix(".tmp")
+            .tempfile_in(dir)
+            .map_err(|e| IoError::io(target, e))?;
+        Ok(AtomicFile {
+            target: target.to_path_buf(),
+            tmp: BufWriter::with_capacity(1 << 20, tmp),
+        })
+    }
+
+    /// The final path.
+    pub fn target(&self) -> &Path {
+        &self.target
+    }
+
+    /// Flushes and renames onto the target, replacing any file there.
+    ///
+    /// # Errors
+    /// Flush or rename failures.
+    pub fn commit(self) -> Result<(), IoError> {
+        let target = self.target;
+        let tmp = self
+            .tmp
+            .into_inner()
+            .map_err(|e| IoError::io(&target, e.into_error()))?;
+        tmp.as_file()
+            .sync_data()
+            .map_err(|e| IoError::io(&target, e))?;
+        tmp.persist(&target)
+            .map_err(|e| IoError::io(&target, e.error))?;
+        Ok(())
+    }
+
+    /// Wraps an OS error with the target path.
+    pub fn err(&self, e: std::io::Error) -> IoError {
+        IoError::io(&self.target, e)
+    }
+}
+
+impl Write for AtomicFile {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        self.tmp.write(buf)
+    }
+    fn write_all(&mut self, buf: &[u8]) -> std::io::Result<()> {
+        self.tmp.write_all(buf)
+    }
+    fn flush(&mut self) -> std::io::Result<()> {
+        self.tmp.flush()
+    }
+}
+
+/// Points per batch for whole-file reads and writes.
+pub const BATCH: usize = 1 << 16;
+
+/// A whole file in memory: positions, records and extras.
+#[derive(Debug, Clone)]
+pub struct Cloud {
+    /// What the source declared.
+    pub info: SourceInfo,
+    /// Positions, one per point.
+    pub positions: Vec<DVec3>,
+    /// Raw records, `info.schema.record_len` bytes per point.
+    pub records: Vec<u8>,
+    /// Faces and other content.
+    pub extras: Extras,
+}
+
+impl Cloud {
+    /// Reads a whole file.
+    ///
+    /// # Errors
+    /// Anything [`open`], [`Source::read_batch`] or [`Source::finish`] reports.
+    pub fn read(path: &Path, format: Option<Format>) -> Result<Cloud, IoError> {
+        let mut src = open(path, format)?;
+        let info = src.info().clone();
+        let cap = info.len.unwrap_or(0).min(1 << 28) as usize;
+        let rl = info.schema.record_len;
+        let mut positions = Vec::with_capacity(cap);
+        let mut records = Vec::with_capacity(cap * rl);
+        let mut batch = PointBatch::with_capacity(rl, BATCH);
+        while src.read_batch(&mut batch, BATCH)? > 0 {
+            positions.extend_from_slice(&batch.positions);
+            records.extend_from_slice(&batch.records);
+        }
+        let extras = src.finish()?;
+        if let Some(f) = &extras.faces
+            && f.min_vertex_count() > positions.len()
+        {
+            return Err(IoError::invalid(
+                path,
+                format!(
+                    "a face references vertex {} but the file has {} vertices",
+                    f.min_vertex_count() - 1,
+                    positions.len()
+                ),
+            ));
+        }
+        Ok(Cloud {
+            info,
+            positions,
+            records,
+            extras,
+        })
+    }
+
+    /// A generated mesh or point set with an x, y, z record of type `ty`.
+    pub fn generated(positions: Vec<DVec3>, faces: Option<Faces>, ty: ScalarType) -> Cloud {
+        let info = SourceInfo::generated(Format::Ply, ty, positions.len() as u64, faces.is_some());
+        let mut records = vec![0u8; positions.len() * info.schema.record_len];
+        for (rec, &p) in records
+            .chunks_exact_mut(info.schema.record_len)
+            .zip(&positions)
+        {
+            info.schema.set_position(rec, p);
+        }
+        Cloud {
+            info,
+            positions,
+            records,
+            extras: Extras {
+                faces,
+                trailer: Trailer::None,
+            },
+        }
+    }
+
+    /// Number of points.
+    pub fn len(&self) -> usize {
+        self.positions.len()
+    }
+
+    /// True without points.
+    pub fn is_empty(&self) -> bool {
+        self.positions.is_empty()
+    }
+
+    /// The faces, if any.
+    pub fn faces(&self) -> Option<&Faces> {
+        self.extras.faces.as_ref()
+    }
+
+    /// Writes the cloud (current positions) to `path`, like its source.
+    ///
+    /// # Errors
+    /// Anything [`create`] or the sink reports.
+    pub fn write(&self, path: &Path, format: Option<Format>) -> Result<(), IoError> {
+        let mut sink = create(path, format, &self.info, self.positions.len() as u64)?;
+        let rl = self.info.schema.record_len;
+        let mut batch = PointBatch::with_capacity(rl, BATCH);
+        for (c, (pos, rec)) in self
+            .positions
+            .chunks(BATCH)
+            .zip(self.records.chunks(BATCH * rl.max(1)))
+            .enumerate()
+        {
+            batch.clear((c * BATCH) as u64);
+            batch.positions.extend_from_slice(pos);
+            batch
+                .records
+                .extend_from_slice(if rl == 0 { &[] } else { rec });
+            sink.write_batch(&batch)?;
+        }
+        sink.finish(&self.extras)
+    }
+}
+
+/// Opens `path` for reading with a clear error.
+///
+/// # Errors
+/// [`IoError::Io`] naming the path.
+pub fn open_file(path: &Path) -> Result<File, IoError> {
+    File::open(path).map_err(|e| IoError::io(path, e))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn format_from_extension() {
+        assert_eq!(
+            Format::from_path(Path::new("a/b.PLY")).unwrap(),
+            Format::Ply
+        );
+        assert_eq!(Format::from_path(Path::new("m.obj")).unwrap(), Format::Obj);
+        assert!(matches!(
+            Format::from_path(Path::new("m.xyzw")),
+            Err(IoError::UnknownFormat { .. })
+        ));
+        assert!(Format::from_path(Path::new("noext")).is_err());
+    }
+
+    #[test]
+    fn atomic_file_leaves_nothing_when_dropped() {
+        let dir = tempfile::tempdir().unwrap();
+        let target = dir.path().join("out.ply");
+        {
+            let mut f = AtomicFile::create(&target).unwrap();
+            f.write_all(b"partial").unwrap();
+        }
+        assert!(!target.exists());
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0);
+        let mut f = AtomicFile::create(&target).unwrap();
+        f.write_all(b"whole").unwrap();
+        f.commit().unwrap();
+        assert_eq!(std::fs::read(&target).unwrap(), b"whole");
+    }
+}

@@ -1,0 +1,26 @@
+//! qemd: feature-preserving denoising of meshes and point clouds with the Quadric Error Metric
+//! operator of Vieira et al., "Mesh Denoising Using Quadric Error Metric".
+//!
+//! # Brief overview
+//!
+//! The crate is layered; each layer uses only the ones before it:
+//!
+//! * [`points`]: the data model (`PointBatch`, `Schema`, `Faces`, `Aabb`).
+//! * [`io`]: streaming `Source`s and `Sink`s per file format (depends only on `points`).
+//! * [`geometry`]: quadrics, the symmetric 3×3 eigensolver, PCA normals, exact sums.
+//! * [`neighbours`]: k-NN (kiddo), radius balls and mesh k-rings.
+//! * [`denoise`]: the QEM operator (meshes and point clouds), the bilateral baseline, parameters
+//!   and statistics.
+//! * [`eval`]: synthetic shapes, noise, the quality metrics, Table I, rendering.
+//! * [`cli`]: the `qemd` command line.
+
+#![warn(missing_docs)]
+#![forbid(unsafe_code)]
+
+pub mod cli;
+pub mod denoise;
+pub mod eval;
+pub mod geometry;
+pub mod io;
+pub mod neighbours;
+pub mod points;

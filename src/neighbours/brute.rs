@@ -1,0 +1,31 @@
+//! Linear-scan oracles for the k-d tree queries (tests and benches compare against them).
+
+use glam::DVec3;
+
+/// The `k` nearest finite points of `pts` to `q`, ascending by (squared distance, index).
+pub fn knn(pts: &[DVec3], q: DVec3, k: usize) -> Vec<u32> {
+    let mut all: Vec<(f64, u32)> = pts
+        .iter()
+        .enumerate()
+        .filter(|(_, p)| p.is_finite())
+        .map(|(i, &p)| (sq(p, q), i as u32))
+        .collect();
+    all.sort_unstable_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+    all.truncate(k);
+    all.into_iter().map(|c| c.1).collect()
+}
+
+/// Indices of the finite points within squared distance `r2` of `q` (inclusive), ascending.
+pub fn within(pts: &[DVec3], q: DVec3, r2: f64) -> Vec<u32> {
+    pts.iter()
+        .enumerate()
+        .filter(|(_, p)| p.is_finite() && sq(**p, q) <= r2)
+        .map(|(i, _)| i as u32)
+        .collect()
+}
+
+/// Squared distance computed coordinate by coordinate, in the same order as the index.
+fn sq(a: DVec3, b: DVec3) -> f64 {
+    let d = a - b;
+    d.x * d.x + d.y * d.y + d.z * d.z
+}

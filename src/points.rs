@@ -1,0 +1,556 @@
+//! The data model every other layer shares: positions plus opaque attribute records.
+//!
+//! # Brief overview
+//!
+//! * [`Schema`] describes one fixed-size binary point record: its [`Field`]s (name, [`ScalarType`],
+//!   byte offset), its byte order and which three fields are x, y and z. Readers build a schema from
+//!   the file's own header, so a writer can reproduce the input's layout and property types exactly.
+//! * [`PointBatch`] is the unit that flows from an `io::Source` to an `io::Sink`: positions decoded to
+//!   f64 plus the untouched record bytes of every point. Only x, y and z are ever rewritten; every
+//!   other byte of the record travels through unchanged (colour, intensity, GPS time, normals, …).
+//! * [`Faces`] holds polygon connectivity in CSR form; [`Aabb`] is an axis-aligned box.
+//!
+//! ```text
+//!  PointBatch (n points, record_len = R)
+//!  positions: [ p0 | p1 | p2 | … ]                 DVec3 (f64), decoded x/y/z
+//!  records:   [ r0 (R bytes) | r1 | r2 | … ]       original encoding, attributes untouched
+//!  start:     global index of p0 in the source
+//! ```
+
+use glam::DVec3;
+use thiserror::Error;
+
+/// Errors of the data model: a schema that cannot describe a record.
+#[derive(Debug, Error, PartialEq, Eq)]
+#[non_exhaustive]
+pub enum PointsError {
+    /// A schema has no field with the given name.
+    #[error("the point schema has no field named `{0}`")]
+    MissingField(String),
+    /// A field lies outside the record.
+    #[error("field `{name}` at byte {offset} does not fit in a {record_len}-byte record")]
+    FieldOutOfRecord {
+        /// Field name.
+        name: String,
+        /// Byte offset of the field.
+        offset: usize,
+        /// Length of the record.
+        record_len: usize,
+    },
+}
+
+/// The scalar types found in point formats (PLY, PCD, LAS, raw binary).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
+pub enum ScalarType {
+    /// Signed 8-bit integer.
+    I8,
+    /// Unsigned 8-bit integer.
+    U8,
+    /// Signed 16-bit integer.
+    I16,
+    /// Unsigned 16-bit integer.
+    U16,
+    /// Signed 32-bit integer.
+    I32,
+    /// Unsigned 32-bit integer.
+    U32,
+    /// Signed 64-bit integer.
+    I64,
+    /// Unsigned 64-bit integer.
+    U64,
+    /// IEEE single precision.
+    F32,
+    /// IEEE double precision.
+    F64,
+}
+
+impl ScalarType {
+    /// Size of one value in bytes.
+    pub const fn size(self) -> usize {
+        match self {
+            ScalarType::I8 | ScalarType::U8 => 1,
+            ScalarType::I16 | ScalarType::U16 => 2,
+            ScalarType::I32 | ScalarType::U32 | ScalarType::F32 => 4,
+            ScalarType::I64 | ScalarType::U64 | ScalarType::F64 => 8,
+        }
+    }
+
+    /// True for `F32` and `F64`.
+    pub const fn is_float(self) -> bool {
+        matches!(self, ScalarType::F32 | ScalarType::F64)
+    }
+}
+
+/// Byte order of binary records.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
+pub enum Endian {
+    /// Least significant byte first.
+    Little,
+    /// Most significant byte first.
+    Big,
+}
+
+/// One named scalar inside a record.
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct Field {
+    /// Name as the file spells it (`x`, `red`, `intensity`, …).
+    pub name: String,
+    /// Stored type.
+    pub ty: ScalarType,
+    /// Byte offset inside the record.
+    pub offset: usize,
+}
+
+/// Layout of one fixed-size point record.
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct Schema {
+    /// Fields in record order.
+    pub fields: Vec<Field>,
+    /// Bytes per record (may exceed the sum of field sizes when a format pads records).
+    pub record_len: usize,
+    /// Byte order of multi-byte fields.
+    pub endian: Endian,
+    /// Indices into `fields` of x, y and z.
+    pub xyz: [usize; 3],
+}
+
+impl Schema {
+    /// Builds a packed schema from `(name, type)` pairs; x, y and z must be among them.
+    ///
+    /// # Errors
+    /// [`PointsError::MissingField`] when x, y or z is absent.
+    pub fn packed(fields: &[(&str, ScalarType)], endian: Endian) -> Result<Schema, PointsError> {
+        let mut offset = 0;
+        let fields: Vec<Field> = fields
+            .iter()
+            .map(|&(name, ty)| {
+                let f = Field {
+                    name: name.to_string(),
+                    ty,
+                    offset,
+                };
+                offset += ty.size();
+                f
+            })
+            .collect();
+        Schema::new(fields, offset, endian)
+    }
+
+    /// A record of just x, y, z of one type.
+    pub fn xyz_only(ty: ScalarType) -> Schema {
+        Schema::packed(&[("x", ty), ("y", ty), ("z", ty)], Endian::Little)
+            .expect("x, y and z are present by construction")
+    }
+
+    /// Builds a schema from explicit fields, locating x, y and z by name.
+    ///
+    /// # Errors
+    /// [`PointsError::MissingField`] when x, y or z is absent, [`PointsError::FieldOutOfRecord`]
+    /// when a field does not fit in `record_len`.
+    pub fn new(
+        fields: Vec<Field>,
+        record_len: usize,
+        endian: Endian,
+    ) -> Result<Schema, PointsError> {
+        for f in &fields {
+            if f.offset + f.ty.size() > record_len {
+                return Err(PointsError::FieldOutOfRecord {
+                    name: f.name.clone(),
+                    offset: f.offset,
+                    record_len,
+                });
+            }
+        }
+        let find = |n: &str| {
+            fields
+                .iter()
+                .position(|f| f.name == n)
+                .ok_or_else(|| PointsError::MissingField(n.to_string()))
+        };
+        let xyz = [find("x")?, find("y")?, find("z")?];
+        Ok(Schema {
+            fields,
+            record_len,
+            endian,
+            xyz,
+        })
+    }
+
+    /// Index of the field called `name`.
+    pub fn field_index(&self, name: &str) -> Option<usize> {
+        self.fields.iter().position(|f| f.name == name)
+    }
+
+    /// Reads field `i` of `record` as f64 (integers convert exactly up to 2^53).
+    pub fn get_f64(&self, record: &[u8], i: usize) -> f64 {
+        let f = &self.fields[i];
+        read_scalar(&record[f.offset..f.offset + f.ty.size()], f.ty, self.endian)
+    }
+
+    /// Writes `v` into field `i` of `record`, converting to the field's type (integers round to
+    /// nearest and saturate).
+    pub fn set_f64(&self, record: &mut [u8], i: usize, v: f64) {
+        let f = &self.fields[i];
+        write_scalar(
+            &mut record[f.offset..f.offset + f.ty.size()],
+            f.ty,
+            self.endian,
+            v,
+        );
+    }
+
+    /// Decodes the position stored in `record`.
+    pub fn position(&self, record: &[u8]) -> DVec3 {
+        DVec3::new(
+            self.get_f64(record, self.xyz[0]),
+            self.get_f64(record, self.xyz[1]),
+            self.get_f64(record, self.xyz[2]),
+        )
+    }
+
+    /// Stores `p` into the x, y and z fields of `record`.
+    pub fn set_position(&self, record: &mut [u8], p: DVec3) {
+        self.set_f64(record, self.xyz[0], p.x);
+        self.set_f64(record, self.xyz[1], p.y);
+        self.set_f64(record, self.xyz[2], p.z);
+    }
+}
+
+/// Decodes one scalar of type `ty` from exactly `ty.size()` bytes.
+pub fn read_scalar(b: &[u8], ty: ScalarType, endian: Endian) -> f64 {
+    macro_rules! rd {
+        ($t:ty) => {{
+            let a = b.try_into().expect("slice length equals the scalar size");
+            (match endian {
+                Endian::Little => <$t>::from_le_bytes(a),
+                Endian::Big => <$t>::from_be_bytes(a),
+            }) as f64
+        }};
+    }
+    match ty {
+        ScalarType::I8 => b[0] as i8 as f64,
+        ScalarType::U8 => b[0] as f64,
+        ScalarType::I16 => rd!(i16),
+        ScalarType::U16 => rd!(u16),
+        ScalarType::I32 => rd!(i32),
+        ScalarType::U32 => rd!(u32),
+        ScalarType::I64 => rd!(i64),
+        ScalarType::U64 => rd!(u64),
+        ScalarType::F32 => rd!(f32),
+        ScalarType::F64 => rd!(f64),
+    }
+}
+
+/// Encodes `v` as type `ty` into exactly `ty.size()` bytes. Integer types round to nearest and
+/// saturate (Rust's `as` semantics; NaN becomes 0).
+pub fn write_scalar(b: &mut [u8], ty: ScalarType, endian: Endian, v: f64) {
+    macro_rules! wr {
+        ($t:ty, $x:expr) => {{
+            let x: $t = $x;
+            b.copy_from_slice(&match endian {
+                Endian::Little => x.to_le_bytes(),
+                Endian::Big => x.to_be_bytes(),
+            });
+        }};
+    }
+    let r = v.round();
+    match ty {
+        ScalarType::I8 => b[0] = r as i8 as u8,
+        ScalarType::U8 => b[0] = r as u8,
+        ScalarType::I16 => wr!(i16, r as i16),
+        ScalarType::U16 => wr!(u16, r as u16),
+        ScalarType::I32 => wr!(i32, r as i32),
+        ScalarType::U32 => wr!(u32, r as u32),
+        ScalarType::I64 => wr!(i64, r as i64),
+        ScalarType::U64 => wr!(u64, r as u64),
+        ScalarType::F32 => wr!(f32, v as f32),
+        ScalarType::F64 => wr!(f64, v),
+    }
+}
+
+/// A run of consecutive points of one source: decoded positions plus the raw records.
+///
+/// Batches are reused: `clear` keeps the allocations, so a reader fills the same buffers again
+/// and a streaming run allocates nothing per batch.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct PointBatch {
+    /// Global index (position in the source) of the first point.
+    pub start: u64,
+    /// Decoded positions, one per point.
+    pub positions: Vec<DVec3>,
+    /// `record_len` bytes per point in the source's own encoding.
+    pub records: Vec<u8>,
+    /// Bytes per record.
+    pub record_len: usize,
+}
+
+impl PointBatch {
+    /// An empty batch for records of `record_len` bytes with room for `capacity` points.
+    pub fn with_capacity(record_len: usize, capacity: usize) -> PointBatch {
+        PointBatch {
+            start: 0,
+            positions: Vec::with_capacity(capacity),
+            records: Vec::with_capacity(capacity * record_len),
+            record_len,
+        }
+    }
+
+    /// Number of points.
+    pub fn len(&self) -> usize {
+        self.positions.len()
+    }
+
+    /// True when the batch holds no point.
+    pub fn is_empty(&self) -> bool {
+        self.positions.is_empty()
+    }
+
+    /// Empties the batch and sets the global index of its next first point.
+    pub fn clear(&mut self, start: u64) {
+        self.start = start;
+        self.positions.clear();
+        self.records.clear();
+    }
+
+    /// Record bytes of point `i`.
+    pub fn record(&self, i: usize) -> &[u8] {
+        &self.records[i * self.record_len..(i + 1) * self.record_len]
+    }
+
+    /// Mutable record bytes of point `i`.
+    pub fn record_mut(&mut self, i: usize) -> &mut [u8] {
+        &mut self.records[i * self.record_len..(i + 1) * self.record_len]
+    }
+
+    /// Appends one point.
+    pub fn push(&mut self, position: DVec3, record: &[u8]) {
+        debug_assert_eq!(record.len(), self.record_len);
+        self.positions.push(position);
+        self.records.extend_from_slice(record);
+    }
+}
+
+/// Polygon connectivity in compressed-sparse-row form.
+///
+/// ```text
+///  offsets: [0, 3, 6, 10]          face f = indices[offsets[f]..offsets[f+1]]
+///  indices: [a b c | c b d | d e f g]
+/// ```
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct Faces {
+    /// `len() + 1` offsets into `indices`; starts at 0.
+    pub offsets: Vec<u32>,
+    /// Vertex indices of all faces, concatenated.
+    pub indices: Vec<u32>,
+}
+
+impl Faces {
+    /// No faces.
+    pub fn new() -> Faces {
+        Faces {
+            offsets: vec![0],
+            indices: Vec::new(),
+        }
+    }
+
+    /// Builds from triangles.
+    pub fn from_triangles(tris: &[[u32; 3]]) -> Faces {
+        let mut f = Faces::new();
+        for t in tris {
+            f.push(t);
+        }
+        f
+    }
+
+    /// Appends one polygon.
+    pub fn push(&mut self, face: &[u32]) {
+        if self.offsets.is_empty() {
+            self.offsets.push(0);
+        }
+        self.indices.extend_from_slice(face);
+        self.offsets.push(self.indices.len() as u32);
+    }
+
+    /// Number of faces.
+    pub fn len(&self) -> usize {
+        self.offsets.len().saturating_sub(1)
+    }
+
+    /// True when there is no face.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Vertex indices of face `f`.
+    pub fn face(&self, f: usize) -> &[u32] {
+        &self.indices[self.offsets[f] as usize..self.offsets[f + 1] as usize]
+    }
+
+    /// Iterates over the faces.
+    pub fn iter(&self) -> impl Iterator<Item = &[u32]> + '_ {
+        (0..self.len()).map(move |f| self.face(f))
+    }
+
+    /// Largest vertex index referenced plus one (0 without faces).
+    pub fn min_vertex_count(&self) -> usize {
+        self.indices.iter().max().map_or(0, |&m| m as usize + 1)
+    }
+
+    /// Fan triangles `(f[0], f[i], f[i+1])` of every face, in face order.
+    pub fn triangles(&self) -> impl Iterator<Item = [u32; 3]> + '_ {
+        self.iter()
+            .flat_map(|f| (1..f.len().saturating_sub(1)).map(move |i| [f[0], f[i], f[i + 1]]))
+    }
+}
+
+/// An axis-aligned bounding box; empty boxes have `min > max`.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Aabb {
+    /// Lower corner.
+    pub min: DVec3,
+    /// Upper corner.
+    pub max: DVec3,
+}
+
+impl Default for Aabb {
+    fn default() -> Self {
+        Aabb::empty()
+    }
+}
+
+impl Aabb {
+    /// The empty box (grows to fit the first point).
+    pub fn empty() -> Aabb {
+        Aabb {
+            min: DVec3::splat(f64::INFINITY),
+            max: DVec3::splat(f64::NEG_INFINITY),
+        }
+    }
+
+    /// Smallest box holding all finite points of `pts`.
+    pub fn from_points(pts: &[DVec3]) -> Aabb {
+        let mut b = Aabb::empty();
+        for &p in pts {
+            b.grow(p);
+        }
+        b
+    }
+
+    /// True when no point was added.
+    pub fn is_empty(&self) -> bool {
+        self.min.x > self.max.x
+    }
+
+    /// Grows to hold `p`; non-finite points are ignored.
+    pub fn grow(&mut self, p: DVec3) {
+        if p.is_finite() {
+            self.min = self.min.min(p);
+            self.max = self.max.max(p);
+        }
+    }
+
+    /// Grows to hold `other`.
+    pub fn union(&mut self, other: &Aabb) {
+        if !other.is_empty() {
+            self.min = self.min.min(other.min);
+            self.max = self.max.max(other.max);
+        }
+    }
+
+    /// Extent along each axis (zero for an empty box).
+    pub fn size(&self) -> DVec3 {
+        if self.is_empty() {
+            DVec3::ZERO
+        } else {
+            self.max - self.min
+        }
+    }
+
+    /// Length of the diagonal.
+    pub fn diagonal(&self) -> f64 {
+        self.size().length()
+    }
+
+    /// Closed containment test.
+    pub fn contains(&self, p: DVec3) -> bool {
+        p.cmpge(self.min).all() && p.cmple(self.max).all()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn scalar_roundtrip_every_type_and_endianness() {
+        let types = [
+            ScalarType::I8,
+            ScalarType::U8,
+            ScalarType::I16,
+            ScalarType::U16,
+            ScalarType::I32,
+            ScalarType::U32,
+            ScalarType::I64,
+            ScalarType::U64,
+            ScalarType::F32,
+            ScalarType::F64,
+        ];
+        for ty in types {
+            for endian in [Endian::Little, Endian::Big] {
+                let mut b = vec![0u8; ty.size()];
+                write_scalar(&mut b, ty, endian, 100.0);
+                assert_eq!(read_scalar(&b, ty, endian), 100.0, "{ty:?} {endian:?}");
+            }
+        }
+        let mut b = [0u8; 4];
+        write_scalar(&mut b, ScalarType::F32, Endian::Big, 1.5);
+        assert_eq!(b, 1.5f32.to_be_bytes());
+    }
+
+    #[test]
+    fn schema_positions_and_padding() {
+        let s = Schema::packed(
+            &[
+                ("x", ScalarType::F64),
+                ("red", ScalarType::U8),
+                ("y", ScalarType::F64),
+                ("z", ScalarType::F32),
+            ],
+            Endian::Big,
+        )
+        .unwrap();
+        assert_eq!(s.record_len, 21);
+        let mut rec = vec![7u8; 21];
+        s.set_position(&mut rec, DVec3::new(1.0, -2.0, 0.25));
+        assert_eq!(s.position(&rec), DVec3::new(1.0, -2.0, 0.25));
+        assert_eq!(rec[8], 7, "the attribute byte is untouched");
+        assert!(matches!(
+            Schema::packed(&[("x", ScalarType::F32)], Endian::Little),
+            Err(PointsError::MissingField(_))
+        ));
+    }
+
+    #[test]
+    fn faces_csr_and_fan_triangles() {
+        let mut f = Faces::new();
+        f.push(&[0, 1, 2]);
+        f.push(&[2, 1, 3, 4]);
+        assert_eq!(f.len(), 2);
+        assert_eq!(f.face(1), &[2, 1, 3, 4]);
+        let t: Vec<_> = f.triangles().collect();
+        assert_eq!(t, vec![[0, 1, 2], [2, 1, 3], [2, 3, 4]]);
+        assert_eq!(f.min_vertex_count(), 5);
+    }
+
+    #[test]
+    fn aabb_ignores_non_finite() {
+        let b = Aabb::from_points(&[
+            DVec3::new(1.0, 2.0, 3.0),
+            DVec3::new(f64::NAN, 0.0, 0.0),
+            DVec3::new(-1.0, 5.0, 0.0),
+        ]);
+        assert_eq!(b.min, DVec3::new(-1.0, 2.0, 0.0));
+        assert_eq!(b.max, DVec3::new(1.0, 5.0, 3.0));
+        assert!(Aabb::empty().is_empty());
+    }
+}
