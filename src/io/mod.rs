@@ -3,7 +3,7 @@
 //! # Brief overview
 //!
 //! * A [`Source`] describes its file in a [`SourceInfo`] (format, record [`Schema`], point count,
-//!   whether it carries faces, and the format's own header in [`Meta`]) and then fills reusable
+//!   face count, and the format's own header in [`Meta`]) and then fills reusable
 //!   [`PointBatch`]es until the points run out. [`Source::finish`] returns the [`Extras`]: the faces
 //!   and whatever else the file holds besides points (other PLY elements, OBJ texture coordinates…).
 //! * A [`Sink`] is created *like* a source ([`create`]): it reproduces the source's header, property
@@ -204,23 +204,29 @@ pub struct SourceInfo {
     pub schema: Schema,
     /// Number of points, when the header declares it.
     pub len: Option<u64>,
-    /// True when the file declares faces (a mesh).
-    pub has_faces: bool,
+    /// Number of faces the file declares (`None` for a point cloud). Sinks whose header states
+    /// the face count (PLY, OFF) write this number and check it against the faces they get.
+    pub faces: Option<u64>,
     /// The format's own header.
     pub meta: Meta,
 }
 
 impl SourceInfo {
     /// Info for data generated in memory: a packed x, y, z record of type `ty`.
-    pub fn generated(format: Format, ty: ScalarType, len: u64, has_faces: bool) -> SourceInfo {
+    pub fn generated(format: Format, ty: ScalarType, len: u64, faces: Option<u64>) -> SourceInfo {
         SourceInfo {
             path: PathBuf::new(),
             format,
             schema: Schema::xyz_only(ty),
             len: Some(len),
-            has_faces,
+            faces,
             meta: Meta::None,
         }
+    }
+
+    /// True when the file declares faces (a mesh).
+    pub fn has_faces(&self) -> bool {
+        self.faces.is_some()
     }
 }
 
@@ -462,7 +468,12 @@ impl Cloud {
 
     /// A generated mesh or point set with an x, y, z record of type `ty`.
     pub fn generated(positions: Vec<DVec3>, faces: Option<Faces>, ty: ScalarType) -> Cloud {
-        let info = SourceInfo::generated(Format::Ply, ty, positions.len() as u64, faces.is_some());
+        let info = SourceInfo::generated(
+            Format::Ply,
+            ty,
+            positions.len() as u64,
+            faces.as_ref().map(|f| f.len() as u64),
+        );
         let mut records = vec![0u8; positions.len() * info.schema.record_len];
         for (rec, &p) in records
             .chunks_exact_mut(info.schema.record_len)
