@@ -150,8 +150,8 @@ pub(super) struct Header {
     pub comments: Vec<String>,
     /// `obj_info` lines (text after the keyword).
     pub obj_info: Vec<String>,
-    /// Raw lines, each with its terminator.
-    pub lines: Vec<String>,
+    /// Raw lines, each with its terminator (bytes: comments need not be UTF-8).
+    pub lines: Vec<Vec<u8>>,
     /// For each element, the index into `lines` of its `element` line.
     pub element_lines: Vec<usize>,
     /// Line terminator of the `end_header` line (`\n` when the file ends right after it).
@@ -161,12 +161,12 @@ pub(super) struct Header {
 impl Header {
     /// Length of the header in bytes.
     pub fn byte_len(&self) -> usize {
-        self.lines.iter().map(String::len).sum()
+        self.lines.iter().map(Vec::len).sum()
     }
 
-    /// The header text with element `i`'s count replaced by `counts[i]` where given.
-    pub fn text_with_counts(&self, counts: &[(usize, u64)]) -> String {
-        let mut out = String::with_capacity(self.byte_len() + 16);
+    /// The header bytes with the count of element `i` replaced by `c` for each `(i, c)` given.
+    pub fn text_with_counts(&self, counts: &[(usize, u64)]) -> Vec<u8> {
+        let mut out = Vec::with_capacity(self.byte_len() + 16);
         for (l, line) in self.lines.iter().enumerate() {
             let new = self
                 .element_lines
@@ -175,8 +175,8 @@ impl Header {
                 .and_then(|e| counts.iter().find(|(i, _)| *i == e))
                 .map(|&(_, c)| c);
             match new {
-                Some(c) => out.push_str(&replace_count(line, c)),
-                None => out.push_str(line),
+                Some(c) => out.extend_from_slice(replace_count(line, c).as_bytes()),
+                None => out.extend_from_slice(line),
             }
         }
         out
@@ -184,7 +184,10 @@ impl Header {
 }
 
 /// Replaces the last token (the count) of an `element` line, keeping spacing and terminator.
-fn replace_count(line: &str, count: u64) -> String {
+fn replace_count(line: &[u8], count: u64) -> String {
+    // Element lines passed the grammar, so they are ASCII.
+    let line = String::from_utf8_lossy(line);
+    let line = line.as_ref();
     let body = line.trim_end_matches([' ', '\t', '\r', '\n']);
     let start = body.rfind([' ', '\t']).map_or(0, |i| i + 1);
     format!("{}{count}{}", &body[..start], &line[body.len()..])
@@ -212,7 +215,7 @@ pub(super) fn read_header(r: &mut impl BufRead, path: &Path) -> Result<Header, I
             "not a PLY file (the first line is not `ply`)",
         ));
     }
-    let mut lines = vec![String::from_utf8_lossy(&buf).into_owned()];
+    let mut lines = vec![buf.clone()];
     let mut total = buf.len();
     loop {
         let lineno = lines.len() + 1;
@@ -229,14 +232,8 @@ pub(super) fn read_header(r: &mut impl BufRead, path: &Path) -> Result<Header, I
                 format!("line {lineno} is too long for a header line (no `end_header` found)"),
             ));
         }
-        let Ok(text) = std::str::from_utf8(&buf) else {
-            return Err(IoError::header(
-                path,
-                format!("line {lineno} is not text (no `end_header` before binary data?)"),
-            ));
-        };
-        lines.push(text.to_string());
-        if text.trim_ascii() == "end_header" {
+        lines.push(buf.clone());
+        if buf.trim_ascii() == b"end_header" {
             break;
         }
     }
@@ -244,8 +241,9 @@ pub(super) fn read_header(r: &mut impl BufRead, path: &Path) -> Result<Header, I
 }
 
 /// Validates `lines` with ply-rs-bw and builds the element model.
-fn parse_lines(lines: Vec<String>, path: &Path) -> Result<Header, IoError> {
-    let text: String = lines.concat();
+fn parse_lines(lines: Vec<Vec<u8>>, path: &Path) -> Result<Header, IoError> {
+    // Non-UTF-8 bytes (a Latin-1 comment, say) become U+FFFD for the grammar; the raw bytes stay.
+    let text = String::from_utf8_lossy(&lines.concat()).into_owned();
     let parser = Parser::<DefaultElement>::new();
     let parsed = parser
         .read_header(&mut Reader::new(text.as_bytes()))
@@ -254,7 +252,10 @@ fn parse_lines(lines: Vec<String>, path: &Path) -> Result<Header, IoError> {
                 .line()
                 .and_then(|l| lines.get(l.wrapping_sub(1)).map(|s| (l, s)))
             {
-                Some((l, s)) => format!("line {l}: cannot parse `{}`", clip(s.trim_ascii())),
+                Some((l, s)) => format!(
+                    "line {l}: cannot parse `{}`",
+                    clip(&String::from_utf8_lossy(s.trim_ascii()))
+                ),
                 None => e
                     .to_string()
                     .lines()
@@ -275,16 +276,17 @@ fn parse_lines(lines: Vec<String>, path: &Path) -> Result<Header, IoError> {
     let element_lines: Vec<usize> = lines
         .iter()
         .enumerate()
-        .filter(|(_, l)| l.split_ascii_whitespace().next() == Some("element"))
+        .filter(|(_, l)| word(l, 0) == Some(b"element".as_slice()))
         .map(|(i, _)| i)
         .collect();
     if element_lines.len() != parsed.elements.len() {
         let mut seen = std::collections::HashSet::new();
         let dup = element_lines
             .iter()
-            .filter_map(|&i| lines[i].split_ascii_whitespace().nth(1))
+            .filter_map(|&i| word(&lines[i], 1))
             .find(|n| !seen.insert(*n))
-            .unwrap_or("?");
+            .map(String::from_utf8_lossy)
+            .unwrap_or_default();
         return Err(IoError::header(
             path,
             format!("element `{dup}` is declared twice"),
@@ -296,7 +298,7 @@ fn parse_lines(lines: Vec<String>, path: &Path) -> Result<Header, IoError> {
         let next = element_lines.get(k + 1).copied().unwrap_or(lines.len());
         let declared = lines[element_lines[k] + 1..next]
             .iter()
-            .filter(|l| l.split_ascii_whitespace().next() == Some("property"))
+            .filter(|l| word(l, 0) == Some(b"property".as_slice()))
             .count();
         if declared != def.properties.len() {
             return Err(IoError::header(
@@ -337,9 +339,9 @@ fn parse_lines(lines: Vec<String>, path: &Path) -> Result<Header, IoError> {
         });
     }
 
-    let last = lines.last().map(String::as_str).unwrap_or_default();
-    let newline = match last.trim_end_matches(['\r', '\n']).len() {
-        n if n < last.len() => last[n..].to_string(),
+    let last = lines.last().map(Vec::as_slice).unwrap_or_default();
+    let newline = match last.iter().rposition(|&c| c != b'\r' && c != b'\n') {
+        Some(n) if n + 1 < last.len() => String::from_utf8_lossy(&last[n + 1..]).into_owned(),
         _ => "\n".to_string(),
     };
     Ok(Header {
@@ -351,6 +353,13 @@ fn parse_lines(lines: Vec<String>, path: &Path) -> Result<Header, IoError> {
         element_lines,
         newline,
     })
+}
+
+/// Word `k` (0-based) of a line, split at ASCII whitespace.
+fn word(line: &[u8], k: usize) -> Option<&[u8]> {
+    line.split(|c| c.is_ascii_whitespace())
+        .filter(|w| !w.is_empty())
+        .nth(k)
 }
 
 /// Shortens a quoted line for an error message.
@@ -365,24 +374,25 @@ fn clip(s: &str) -> String {
 /// Builds a header for a generated cloud; `elements` are written in order.
 pub(super) fn generated_header(encoding: PlyEncoding, elements: Vec<PlyElement>) -> Header {
     let mut lines = vec![
-        "ply\n".to_string(),
-        format!("format {} 1.0\n", encoding.keyword()),
+        b"ply\n".to_vec(),
+        format!("format {} 1.0\n", encoding.keyword()).into_bytes(),
     ];
     let mut element_lines = Vec::new();
     for e in &elements {
         element_lines.push(lines.len());
-        lines.push(format!("element {} {}\n", e.name, e.count));
+        lines.push(format!("element {} {}\n", e.name, e.count).into_bytes());
         for p in &e.properties {
             let kw = |t| type_keyword(t).unwrap_or("double");
-            lines.push(match p.ty {
+            let line = match p.ty {
                 PlyType::Scalar(t) => format!("property {} {}\n", kw(t), p.name),
                 PlyType::List { count, item } => {
                     format!("property list {} {} {}\n", kw(count), kw(item), p.name)
                 }
-            });
+            };
+            lines.push(line.into_bytes());
         }
     }
-    lines.push("end_header\n".to_string());
+    lines.push(b"end_header\n".to_vec());
     Header {
         encoding,
         elements,
@@ -431,11 +441,9 @@ mod tests {
         assert_eq!(h.elements[1].face_list(), Some(0));
         assert_eq!(h.newline, "\r\n");
         assert_eq!(h.lines.concat().len(), h.byte_len());
-        assert!(h.text_with_counts(&[]).ends_with("end_header\r\n"));
-        assert!(
-            h.text_with_counts(&[(0, 17)])
-                .contains("element vertex 17\r\nproperty int8 x")
-        );
+        assert!(h.text_with_counts(&[]).ends_with(b"end_header\r\n"));
+        let text = String::from_utf8(h.text_with_counts(&[(0, 17)])).unwrap();
+        assert!(text.contains("element vertex 17\r\nproperty int8 x"));
     }
 
     #[test]
@@ -469,11 +477,20 @@ mod tests {
     }
 
     #[test]
+    fn non_utf8_comments_are_kept_byte_for_byte() {
+        let text = b"ply\nformat ascii 1.0\ncomment cr\xe9\xe9 par\nelement vertex 0\n\
+                     property float x\nend_header\n";
+        let h = read_header(&mut text.as_slice(), Path::new("t.ply")).unwrap();
+        assert_eq!(h.text_with_counts(&[]), text);
+        assert_eq!(h.elements[0].name, "vertex");
+    }
+
+    #[test]
     fn count_replacement_keeps_spacing() {
         assert_eq!(
-            replace_count("element  vertex   12 \r\n", 7),
+            replace_count(b"element  vertex   12 \r\n", 7),
             "element  vertex   7 \r\n"
         );
-        assert_eq!(replace_count("element vertex 12", 0), "element vertex 0");
+        assert_eq!(replace_count(b"element vertex 12", 0), "element vertex 0");
     }
 }

@@ -2,9 +2,11 @@
 //!
 //! # Brief overview
 //!
-//! * [`PlySource::open`] reads the header (see [`header`](self) notes below), requires a `vertex`
-//!   element with scalar `x`, `y` and `z`, and describes the vertex record as a packed [`Schema`]
-//!   in the file's own property types and byte order (ascii values are stored little-endian).
+//! * [`PlySource::open`] reads the header, requires a `vertex` element with scalar `x`, `y` and `z`,
+//!   and describes the vertex record as a packed [`Schema`] in the file's own property types and
+//!   byte order (ascii values are stored little-endian). The header text is collected here and
+//!   validated by `ply-rs-bw`'s header parser; the raw lines are kept so that a writer can
+//!   reproduce them byte for byte.
 //!   Elements declared *before* `vertex` are read at once and kept in [`PlyMeta`].
 //! * [`Source::read_batch`] delivers vertices. Binary files take a fast path: one `read_exact` of
 //!   `n × record_len` bytes straight into the batch, then positions decoded at fixed offsets.
@@ -90,7 +92,7 @@ impl PlyMeta {
     }
 
     /// The header exactly as read (`ply` to `end_header`, line terminators included).
-    pub fn header_text(&self) -> String {
+    pub fn header_bytes(&self) -> Vec<u8> {
         self.header.lines.concat()
     }
 
@@ -121,10 +123,12 @@ impl PlyTrailer {
         &self.elements
     }
 
-    /// Raw bytes of element `i` of [`PlyTrailer::elements`] (ascii: its lines).
-    pub fn element_bytes(&self, i: usize) -> &[u8] {
+    /// Raw bytes of element `i` of [`PlyTrailer::elements`] (ascii: its lines); `None` when
+    /// there is no such element.
+    pub fn element_bytes(&self, i: usize) -> Option<&[u8]> {
+        let end = *self.ends.get(i)?;
         let start = if i == 0 { 0 } else { self.ends[i - 1] };
-        &self.data[start..self.ends[i]]
+        self.data.get(start..end)
     }
 
     /// Bytes after the last element (usually empty).
@@ -294,7 +298,7 @@ impl PlySource {
             && reader.fill_buf().is_ok_and(|b| {
                 b.iter().position(|&c| c == b'\n').is_some_and(|nl| {
                     let l = b[..nl].strip_suffix(b"\r").unwrap_or(&b[..nl]);
-                    matches!(l.last(), Some(b' ' | b'\t'))
+                    l.last() == Some(&b' ')
                 })
             });
 
@@ -599,9 +603,11 @@ impl PlySink {
     ///
     /// With a PLY source's meta the output keeps its header (encoding, comments, `obj_info`, every
     /// element and property type) with the vertex count set to `count` (and the face count to
-    /// `like.faces`). Otherwise a `binary_little_endian` header is built from `like.schema`, plus a
-    /// `face` element (`list uchar int vertex_indices`) when `like.faces` is set. 64-bit integer
-    /// fields, which PLY lacks, are written as `double`.
+    /// `like.faces`); record fields are matched by name, so a field the header lacks is dropped
+    /// and a header property the records lack is written as 0. Otherwise a `binary_little_endian`
+    /// header is built from `like.schema`, plus a `face` element (`list uchar int vertex_indices`)
+    /// when `like.faces` is set; 64-bit integer fields, which PLY lacks, are written as `double`,
+    /// and names are made valid PLY identifiers (`gps time` → `gps_time`).
     ///
     /// # Errors
     /// The directory is not writable; a face element stored before `vertex` would need a new count.
@@ -638,8 +644,9 @@ impl PlySink {
                             h.lines.splice(
                                 at..at,
                                 [
-                                    format!("element face {n}{nl}"),
-                                    format!("property list uchar int vertex_indices{nl}"),
+                                    format!("element face {n}{nl}").into_bytes(),
+                                    format!("property list uchar int vertex_indices{nl}")
+                                        .into_bytes(),
                                 ],
                             );
                             h.element_lines.push(at);
@@ -737,7 +744,7 @@ impl PlySink {
             .and_then(|i| post[i].face_list().map(|k| (i, k)));
 
         let mut out = AtomicFile::create(path)?;
-        out.write_all(header_text.as_bytes())
+        out.write_all(&header_text)
             .and_then(|_| out.write_all(&pre_vertex))
             .map_err(|e| out.err(e))?;
         Ok(PlySink {
@@ -938,7 +945,7 @@ impl Sink for PlySink {
         for (i, el) in post.iter().enumerate() {
             let raw = trailer
                 .filter(|t| t.elements.get(i) == Some(el))
-                .map(|t| t.element_bytes(i));
+                .and_then(|t| t.element_bytes(i));
             match s.face {
                 Some((fi, list)) if fi == i => {
                     let unchanged = match (&extras.faces, trailer) {
@@ -978,5 +985,67 @@ impl Sink for PlySink {
                 .map_err(|e| s.out.err(e))?;
         }
         s.out.commit()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::io::Cloud;
+
+    #[test]
+    fn names_become_ply_identifiers() {
+        let taken = vec!["a".to_string(), "a_2".to_string()];
+        assert_eq!(ply_name("x", &[]), "x");
+        assert_eq!(ply_name("gps time", &[]), "gps_time");
+        assert_eq!(ply_name("3d", &[]), "_3d");
+        assert_eq!(ply_name("a", &taken), "a_3");
+        assert_eq!(int_max(ScalarType::U8), 255);
+        assert_eq!(int_max(ScalarType::I32), i32::MAX as u64);
+    }
+
+    #[test]
+    fn default_meta_falls_back_to_the_generic_header() {
+        assert!(PlyMeta::default().vertex_element().is_none());
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("d.ply");
+        let mut c = Cloud::generated(vec![glam::DVec3::ONE; 2], None, ScalarType::F32);
+        c.info.meta = Meta::Ply(PlyMeta::default());
+        c.write(&path, None).unwrap();
+        let back = PlySource::open(&path).unwrap();
+        let Meta::Ply(m) = &back.info().meta else {
+            panic!("PLY meta expected")
+        };
+        assert_eq!(m.encoding(), PlyEncoding::BinaryLittleEndian);
+        assert!(
+            m.header_bytes()
+                .starts_with(b"ply\nformat binary_little_endian 1.0\n")
+        );
+        assert_eq!(back.info().len, Some(2));
+    }
+
+    #[test]
+    fn appends_a_face_element_to_a_ply_point_cloud() {
+        let dir = tempfile::tempdir().unwrap();
+        let (a, b) = (dir.path().join("a.ply"), dir.path().join("b.ply"));
+        std::fs::write(
+            &a,
+            "ply\r\nformat ascii 1.0\r\nelement vertex 3\r\nproperty float x\r\n\
+             property float y\r\nproperty float z\r\nend_header\r\n0 0 0\r\n1 0 0\r\n0 1 0\r\n",
+        )
+        .unwrap();
+        let mut c = Cloud::read(&a, None).unwrap();
+        assert_eq!(c.info.faces, None);
+        c.info.faces = Some(1);
+        c.extras.faces = Some(Faces::from_triangles(&[[0, 1, 2]]));
+        c.write(&b, None).unwrap();
+        let text = std::fs::read_to_string(&b).unwrap();
+        assert!(text.contains(
+            "property float z\r\nelement face 1\r\nproperty list uchar int vertex_indices\r\n\
+             end_header\r\n"
+        ));
+        assert!(text.ends_with("0 1 0\r\n3 0 1 2\r\n"), "{text}");
+        let back = Cloud::read(&b, None).unwrap();
+        assert_eq!(back.faces(), c.faces());
     }
 }
