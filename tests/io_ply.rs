@@ -1,11 +1,9 @@
 //! Integration tests of the PLY backend: lossless round trips for every encoding and scalar type,
 //! extra elements, cross-format writes, bad input, and (ignored by default) the shared data files.
-
 //!
 //! Everything lives in module `io_ply`, so `cargo test -- io_ply` selects exactly these tests.
 
 mod io_ply {
-
     use std::path::{Path, PathBuf};
 
     use glam::DVec3;
@@ -692,6 +690,13 @@ mod io_ply {
             let again = Cloud::read(&output, None).unwrap();
             assert_eq!(again.faces(), Some(&new));
             assert_eq!(again.info.faces, Some(3));
+            // Same face count, different faces: the raw face bytes must not be reused.
+            let swapped = Faces::from_triangles(&[[0, 1, 3], [0, 2, 3], [3, 1, 2]]);
+            let mut c2 = again.clone();
+            c2.extras.faces = Some(swapped.clone());
+            let output2 = dir.path().join("out2.ply");
+            c2.write(&output2, None).unwrap();
+            assert_eq!(Cloud::read(&output2, None).unwrap().faces(), Some(&swapped));
             let Meta::Ply(m) = &again.info.meta else {
                 panic!()
             };
