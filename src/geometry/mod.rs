@@ -163,7 +163,7 @@ impl Solve {
     pub fn offset(&self, q: &Quadric) -> Option<DVec3> {
         let e = q.a.eigen();
         let lmax = e.values[2];
-        if !(lmax > 0.0) {
+        if lmax.is_nan() || lmax <= 0.0 {
             return None;
         }
         // g = A·0 + b: the gradient / 2 at the vertex.
@@ -234,7 +234,7 @@ pub fn pca_normal(pts: impl Iterator<Item = DVec3> + Clone) -> Option<PlaneFit> 
         return None;
     }
     let e = cov.eigen();
-    if !(e.values[1] > DEGENERATE_RATIO * e.values[2]) {
+    if e.values[1].is_nan() || e.values[1] <= DEGENERATE_RATIO * e.values[2] {
         return None;
     }
     Some(PlaneFit {
