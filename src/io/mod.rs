@@ -18,9 +18,11 @@
 //!
 //! One backend per format lives in its own module; this module only dispatches.
 
+pub mod kitti;
 pub mod obj;
 pub mod off;
 pub mod ply;
+pub mod text;
 
 use std::fs::File;
 use std::io::{BufWriter, Write};
@@ -136,9 +138,15 @@ pub enum Format {
     Obj,
     /// Object File Format.
     Off,
+    /// Text point cloud, one `x y z …` line per point (`.xyz`, `.txt`).
+    Xyz,
+    /// Leica-style text point cloud: the point count, then `x y z …` lines (`.pts`).
+    Pts,
+    /// KITTI Velodyne scan: little-endian `f32` x, y, z, intensity records (`.bin`).
+    Kitti,
 }
 
-const KNOWN: &str = ".ply, .obj, .off";
+const KNOWN: &str = ".ply, .obj, .off, .xyz, .txt, .pts, .bin";
 
 impl Format {
     /// Tells the format from a file extension (case-insensitive).
@@ -158,12 +166,16 @@ impl Format {
             })
     }
 
-    /// Parses a format name or extension (`ply`, `obj`, `off`).
+    /// Parses a format name or extension (`ply`, `obj`, `off`, `xyz`, `txt`, `pts`, `bin`,
+    /// `kitti`).
     pub fn from_name(name: &str) -> Option<Format> {
         match name.to_ascii_lowercase().as_str() {
             "ply" => Some(Format::Ply),
             "obj" => Some(Format::Obj),
             "off" => Some(Format::Off),
+            "xyz" | "txt" => Some(Format::Xyz),
+            "pts" => Some(Format::Pts),
+            "bin" | "kitti" => Some(Format::Kitti),
             _ => None,
         }
     }
@@ -174,6 +186,9 @@ impl Format {
             Format::Ply => "ply",
             Format::Obj => "obj",
             Format::Off => "off",
+            Format::Xyz => "xyz",
+            Format::Pts => "pts",
+            Format::Kitti => "bin",
         }
     }
 }
@@ -191,6 +206,8 @@ pub enum Meta {
     Obj(obj::ObjMeta),
     /// OFF specifics.
     Off(off::OffMeta),
+    /// XYZ and PTS header lines and separator.
+    Text(text::TextMeta),
 }
 
 /// What a source says about its file before any point is read.
@@ -243,6 +260,8 @@ pub enum Trailer {
     Obj(obj::ObjTrailer),
     /// OFF face lines.
     Off(off::OffTrailer),
+    /// XYZ and PTS comment lines after the points.
+    Text(text::TextTrailer),
 }
 
 /// Everything a file holds besides its points.
@@ -311,6 +330,9 @@ pub fn open(path: &Path, format: Option<Format>) -> Result<Box<dyn Source>, IoEr
         Format::Ply => Box::new(ply::PlySource::open(path)?),
         Format::Obj => Box::new(obj::ObjSource::open(path)?),
         Format::Off => Box::new(off::OffSource::open(path)?),
+        Format::Xyz => Box::new(text::TextSource::open(path, text::TextFlavor::Xyz)?),
+        Format::Pts => Box::new(text::TextSource::open(path, text::TextFlavor::Pts)?),
+        Format::Kitti => Box::new(kitti::KittiSource::open(path)?),
     })
 }
 
@@ -334,6 +356,19 @@ pub fn create(
         Format::Ply => Box::new(ply::PlySink::create(path, like, count)?),
         Format::Obj => Box::new(obj::ObjSink::create(path, like, count)?),
         Format::Off => Box::new(off::OffSink::create(path, like, count)?),
+        Format::Xyz => Box::new(text::TextSink::create(
+            path,
+            text::TextFlavor::Xyz,
+            like,
+            count,
+        )?),
+        Format::Pts => Box::new(text::TextSink::create(
+            path,
+            text::TextFlavor::Pts,
+            like,
+            count,
+        )?),
+        Format::Kitti => Box::new(kitti::KittiSink::create(path, like, count)?),
     })
 }
 

@@ -1,0 +1,1053 @@
+//! Text point clouds (`.xyz`, `.txt`, `.pts`) and the line helpers the OBJ and OFF backends share.
+//!
+//! # Brief overview
+//!
+//! * **XYZ** (`.xyz`, `.txt`): one point per line, columns separated by whitespace or commas. The
+//!   first three columns are x, y and z; further columns (intensity, colour, normals…) are kept as
+//!   `F64` fields named from a header comment such as `//X Y Z Intensity` or `# x y z r g b` when
+//!   one matches the column count, else `c3`, `c4`, …
+//! * **PTS** (`.pts`, Leica style): the same, preceded by a line holding the point count.
+//!
+//! ```text
+//!  # scanned 2024-05-01          <- comment lines (`#` or `//`) before the points: TextMeta::header
+//!  //X Y Z Intensity             <- names the columns when it has as many entries as a point line
+//!  17238                         <- PTS only: the point count (rewritten with the sink's count)
+//!  1.5 2.25 -0.5 0.31            <- points: x y z, then the extra columns c3, c4…
+//!  # end                         <- comment lines after the last point: TextTrailer::tail
+//! ```
+//!
+//! The reader is truly streaming: it holds one line and one batch at a time, never the file, so
+//! an XYZ source does not know its point count (`SourceInfo::len` is `None`); a PTS source takes
+//! it from the count line and checks it. A PTS file with several point blocks (a second count
+//! line) is reported as unsupported.
+//! The writer keeps the separator (`" "`, `"\t"`, `","`, `", "`…), the line terminator and the
+//! comment lines before and after the points. Comment and blank lines *between* points are
+//! dropped, because a streaming sink cannot know about them before it writes the points.
+//!
+//! Numbers are written with Rust's shortest round-trip formatting (`{}`); `f32` fields of a
+//! foreign layout (KITTI, binary PLY) are written as `f32`, so a value read from a float file
+//! prints as the short decimal it came from. `nan` and `inf` are accepted and delivered as they are.
+//! Faces cannot be stored in these formats; a sink ignores [`Extras::faces`].
+
+use std::fs::File;
+use std::io::{BufRead, BufReader, Read, Write};
+use std::path::{Path, PathBuf};
+
+use glam::DVec3;
+
+use super::{AtomicFile, Extras, Format, IoError, Meta, Sink, Source, SourceInfo, Trailer};
+use crate::points::{Endian, Field, PointBatch, ScalarType, Schema};
+
+/// Line terminator of a text file.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub enum LineEnding {
+    /// `\n` (Unix).
+    #[default]
+    Lf,
+    /// `\r\n` (Windows).
+    CrLf,
+}
+
+impl LineEnding {
+    /// The terminator's bytes.
+    pub fn bytes(self) -> &'static [u8] {
+        match self {
+            LineEnding::Lf => b"\n",
+            LineEnding::CrLf => b"\r\n",
+        }
+    }
+
+    /// The terminator of a raw line, `None` when the line has none (the file's last line).
+    pub(crate) fn of(raw: &[u8]) -> Option<LineEnding> {
+        if raw.ends_with(b"\r\n") {
+            Some(LineEnding::CrLf)
+        } else if raw.ends_with(b"\n") {
+            Some(LineEnding::Lf)
+        } else {
+            None
+        }
+    }
+}
+
+/// Which of the two text point formats a [`TextSource`] or [`TextSink`] speaks.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum TextFlavor {
+    /// Points only (`.xyz`, `.txt`).
+    Xyz,
+    /// The point count on its own line, then the points (`.pts`).
+    Pts,
+}
+
+impl TextFlavor {
+    fn format(self) -> Format {
+        match self {
+            TextFlavor::Xyz => Format::Xyz,
+            TextFlavor::Pts => Format::Pts,
+        }
+    }
+}
+
+/// Header information of a text point file that a sink reproduces.
+#[derive(Debug, Clone, Default)]
+pub struct TextMeta {
+    /// Raw comment and blank lines before the first point (PTS: before the count line), with
+    /// their terminators.
+    pub header: Vec<u8>,
+    /// PTS only: raw comment and blank lines between the count line and the first point.
+    pub after_count: Vec<u8>,
+    /// The separator between columns as the first point line spells it (`" "`, `","`, `", "`…).
+    pub separator: String,
+    /// Line terminator of the point lines.
+    pub eol: LineEnding,
+}
+
+/// Text point file content besides the points.
+#[derive(Debug, Clone, Default)]
+pub struct TextTrailer {
+    /// Raw comment and blank lines after the last point.
+    pub tail: Vec<u8>,
+    /// The last point line ends the file without a line terminator.
+    pub unterminated: bool,
+}
+
+// ---------------------------------------------------------------------------------------------
+// Line helpers shared with the OBJ and OFF backends.
+
+/// Splits a raw line into its content and its terminator (`\n`, `\r\n` or nothing).
+pub(crate) fn split_eol(raw: &[u8]) -> (&[u8], &[u8]) {
+    let n = match LineEnding::of(raw) {
+        Some(LineEnding::CrLf) => 2,
+        Some(LineEnding::Lf) => 1,
+        None => 0,
+    };
+    raw.split_at(raw.len() - n)
+}
+
+/// `b` without leading and trailing ASCII whitespace.
+pub(crate) fn trim(b: &[u8]) -> &[u8] {
+    b.trim_ascii()
+}
+
+/// `b` up to (excluding) the first `#`.
+pub(crate) fn strip_comment(b: &[u8]) -> &[u8] {
+    match b.iter().position(|&c| c == b'#') {
+        Some(i) => &b[..i],
+        None => b,
+    }
+}
+
+/// True for a blank line or a comment line (`#` or `//`).
+pub(crate) fn is_comment_or_blank(content: &[u8]) -> bool {
+    let t = trim(content);
+    t.is_empty() || t.starts_with(b"#") || t.starts_with(b"//")
+}
+
+/// The whitespace-separated tokens of `b`.
+pub(crate) fn tokens(b: &[u8]) -> impl Iterator<Item = &[u8]> {
+    b.split(|c| c.is_ascii_whitespace())
+        .filter(|t| !t.is_empty())
+}
+
+/// Parses a decimal number (`nan` and `inf` included).
+pub(crate) fn parse_f64(tok: &[u8]) -> Option<f64> {
+    std::str::from_utf8(tok).ok()?.parse().ok()
+}
+
+/// Parses an unsigned integer.
+pub(crate) fn parse_u64(tok: &[u8]) -> Option<u64> {
+    std::str::from_utf8(tok).ok()?.parse().ok()
+}
+
+/// A token fit for a one-line error message: lossy UTF-8, escaped, at most 40 characters.
+pub(crate) fn show(tok: &[u8]) -> String {
+    let s = String::from_utf8_lossy(tok);
+    let mut out: String = s
+        .chars()
+        .take(40)
+        .collect::<String>()
+        .escape_debug()
+        .collect();
+    if s.chars().count() > 40 {
+        out.push('…');
+    }
+    out
+}
+
+/// Appends `v` in the shortest text that reads back as the same value of type `ty`: `f32` fields
+/// print as `f32`, everything else as `f64` (integers print without a fraction).
+pub(crate) fn push_value(out: &mut Vec<u8>, ty: ScalarType, v: f64) {
+    // Writing into a Vec<u8> cannot fail.
+    let _ = match ty {
+        ScalarType::F32 => write!(out, "{}", v as f32),
+        _ => write!(out, "{v}"),
+    };
+}
+
+/// Type of each of x, y and z in `schema` (used to print coordinates at the field's precision).
+pub(crate) fn coord_types(schema: &Schema) -> [ScalarType; 3] {
+    schema.xyz.map(|i| schema.fields[i].ty)
+}
+
+/// Indices of the fields of `schema` other than x, y and z, in record order.
+pub(crate) fn extra_fields(schema: &Schema) -> Vec<usize> {
+    (0..schema.fields.len())
+        .filter(|i| !schema.xyz.contains(i))
+        .collect()
+}
+
+/// A packed little-endian `F64` schema for text columns; the first three names must be x, y, z.
+pub(crate) fn f64_schema(path: &Path, names: &[String]) -> Result<Schema, IoError> {
+    let fields = names
+        .iter()
+        .enumerate()
+        .map(|(i, n)| Field {
+            name: n.clone(),
+            ty: ScalarType::F64,
+            offset: 8 * i,
+        })
+        .collect();
+    Schema::new(fields, 8 * names.len(), Endian::Little)
+        .map_err(|e| IoError::header(path, e.to_string()))
+}
+
+/// Names `x`, `y`, `z`, then `fallback(i)` for the extra columns 3…n-1.
+pub(crate) fn default_names(n: usize, extra: &[&str]) -> Vec<String> {
+    let mut names: Vec<String> = ["x", "y", "z"].iter().map(|s| s.to_string()).collect();
+    for i in 3..n {
+        names.push(match extra.get(i - 3) {
+            Some(s) if extra.len() == n - 3 => s.to_string(),
+            _ => format!("c{i}"),
+        });
+    }
+    names
+}
+
+/// Fills `record` (F64 little endian, `values.len()` fields) and returns the position.
+pub(crate) fn encode_f64_record(values: &[f64], record: &mut Vec<u8>) -> DVec3 {
+    record.clear();
+    for v in values {
+        record.extend_from_slice(&v.to_le_bytes());
+    }
+    DVec3::new(values[0], values[1], values[2])
+}
+
+/// Checks that a batch carries records of the announced layout.
+pub(crate) fn check_batch(path: &Path, schema: &Schema, batch: &PointBatch) -> Result<(), IoError> {
+    if batch.record_len != schema.record_len
+        || batch.records.len() != batch.len() * schema.record_len
+    {
+        return Err(IoError::invalid(
+            path,
+            format!(
+                "a batch of {} points carries {} record bytes of {} each, but the sink was created \
+                 for {}-byte records",
+                batch.len(),
+                batch.records.len(),
+                batch.record_len,
+                schema.record_len
+            ),
+        ));
+    }
+    Ok(())
+}
+
+/// Counts the points a sink writes against the count it announced.
+pub(crate) struct Tally {
+    announced: u64,
+    written: u64,
+}
+
+impl Tally {
+    pub(crate) fn new(announced: u64) -> Tally {
+        Tally {
+            announced,
+            written: 0,
+        }
+    }
+
+    /// Points written so far.
+    pub(crate) fn written(&self) -> u64 {
+        self.written
+    }
+
+    /// Accounts for `n` more points; errors when they exceed the announced count.
+    pub(crate) fn add(&mut self, path: &Path, n: usize) -> Result<(), IoError> {
+        let total = self.written + n as u64;
+        if total > self.announced {
+            return Err(IoError::invalid(
+                path,
+                format!(
+                    "got {total} points to write but {} were announced",
+                    self.announced
+                ),
+            ));
+        }
+        self.written = total;
+        Ok(())
+    }
+
+    /// Errors unless exactly the announced number of points was written.
+    pub(crate) fn check(&self, path: &Path) -> Result<(), IoError> {
+        if self.written != self.announced {
+            return Err(IoError::invalid(
+                path,
+                format!(
+                    "wrote {} points but {} were announced",
+                    self.written, self.announced
+                ),
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// Reads a file line by line, counting lines from 1.
+pub(crate) struct LineReader {
+    path: PathBuf,
+    inner: BufReader<File>,
+    buf: Vec<u8>,
+    line: u64,
+}
+
+impl LineReader {
+    pub(crate) fn open(path: &Path) -> Result<LineReader, IoError> {
+        let file = super::open_file(path)?;
+        Ok(LineReader {
+            path: path.to_path_buf(),
+            inner: BufReader::with_capacity(1 << 16, file),
+            buf: Vec::new(),
+            line: 0,
+        })
+    }
+
+    /// Reads the next raw line (terminator included); false at the end of the file.
+    pub(crate) fn next_line(&mut self) -> Result<bool, IoError> {
+        self.buf.clear();
+        let n = self
+            .inner
+            .read_until(b'\n', &mut self.buf)
+            .map_err(|e| IoError::io(&self.path, e))?;
+        if n == 0 {
+            return Ok(false);
+        }
+        self.line += 1;
+        Ok(true)
+    }
+
+    /// The current raw line.
+    pub(crate) fn raw(&self) -> &[u8] {
+        &self.buf
+    }
+
+    /// Number of the current line (1-based).
+    pub(crate) fn line(&self) -> u64 {
+        self.line
+    }
+
+    /// Appends the rest of the file to `out`.
+    pub(crate) fn read_rest(&mut self, out: &mut Vec<u8>) -> Result<(), IoError> {
+        self.inner
+            .read_to_end(out)
+            .map_err(|e| IoError::io(&self.path, e))?;
+        Ok(())
+    }
+}
+
+/// Writes lines through an [`AtomicFile`]. The terminator of a formatted line is held back until
+/// something follows it, so a file whose last line had no terminator can be reproduced.
+pub(crate) struct LineSink {
+    file: AtomicFile,
+    eol: LineEnding,
+    pending: bool,
+}
+
+impl LineSink {
+    pub(crate) fn create(path: &Path, eol: LineEnding) -> Result<LineSink, IoError> {
+        Ok(LineSink {
+            file: AtomicFile::create(path)?,
+            eol,
+            pending: false,
+        })
+    }
+
+    pub(crate) fn path(&self) -> &Path {
+        self.file.target()
+    }
+
+    fn put(&mut self, bytes: &[u8]) -> Result<(), IoError> {
+        if self.pending {
+            self.pending = false;
+            let eol = self.eol.bytes();
+            self.file.write_all(eol).map_err(|e| self.file.err(e))?;
+        }
+        self.file.write_all(bytes).map_err(|e| self.file.err(e))
+    }
+
+    /// Writes raw bytes that carry their own terminators (nothing for an empty slice).
+    pub(crate) fn raw(&mut self, bytes: &[u8]) -> Result<(), IoError> {
+        if bytes.is_empty() {
+            return Ok(());
+        }
+        self.put(bytes)
+    }
+
+    /// Writes one line; its terminator follows with the next write or at `finish`.
+    pub(crate) fn line(&mut self, content: &[u8]) -> Result<(), IoError> {
+        self.put(content)?;
+        self.pending = true;
+        Ok(())
+    }
+
+    /// Terminates the last line unless `unterminated`, then moves the file into place.
+    pub(crate) fn finish(mut self, unterminated: bool) -> Result<(), IoError> {
+        if self.pending && !unterminated {
+            let eol = self.eol.bytes();
+            self.file.write_all(eol).map_err(|e| self.file.err(e))?;
+        }
+        self.file.commit()
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Reader.
+
+/// How the columns of a point line are separated.
+#[derive(Debug, Clone, Copy)]
+enum Split {
+    Whitespace,
+    Comma,
+}
+
+/// Splits `content` into column tokens.
+fn columns(content: &[u8], split: Split, out: &mut Vec<(usize, usize)>) {
+    out.clear();
+    match split {
+        Split::Whitespace => {
+            let mut start = None;
+            for (i, &c) in content.iter().enumerate() {
+                match (c.is_ascii_whitespace(), start) {
+                    (false, None) => start = Some(i),
+                    (true, Some(s)) => {
+                        out.push((s, i));
+                        start = None;
+                    }
+                    _ => {}
+                }
+            }
+            if let Some(s) = start {
+                out.push((s, content.len()));
+            }
+        }
+        Split::Comma => {
+            let mut s = 0;
+            for (i, &c) in content.iter().enumerate() {
+                if c == b',' {
+                    out.push((s, i));
+                    s = i + 1;
+                }
+            }
+            out.push((s, content.len()));
+            // A trailing comma does not open a column.
+            if let Some(&(a, b)) = out.last()
+                && out.len() > 1
+                && trim(&content[a..b]).is_empty()
+            {
+                out.pop();
+            }
+        }
+    }
+}
+
+/// Parses one point line into `values`; errors name the line.
+fn parse_point(
+    path: &Path,
+    line: u64,
+    content: &[u8],
+    split: Split,
+    ncols: usize,
+    spans: &mut Vec<(usize, usize)>,
+    values: &mut Vec<f64>,
+) -> Result<(), IoError> {
+    columns(content, split, spans);
+    if spans.len() != ncols {
+        return Err(IoError::invalid(
+            path,
+            format!(
+                "line {line}: {} columns, expected {ncols} like the first point",
+                spans.len()
+            ),
+        ));
+    }
+    values.clear();
+    for (k, &(a, b)) in spans.iter().enumerate() {
+        let tok = trim(&content[a..b]);
+        let v = parse_f64(tok).ok_or_else(|| {
+            IoError::invalid(
+                path,
+                format!(
+                    "line {line}: bad number `{}` in column {}",
+                    show(tok),
+                    k + 1
+                ),
+            )
+        })?;
+        values.push(v);
+    }
+    Ok(())
+}
+
+/// The separator between the first two columns of `content` (leading whitespace trimmed).
+fn detect_separator(content: &[u8]) -> Option<(String, Split)> {
+    let t = trim(content);
+    let is_sep = |c: &u8| c.is_ascii_whitespace() || *c == b',';
+    let end = t.iter().position(is_sep)?;
+    let len = t[end..].iter().take_while(|c| is_sep(c)).count();
+    let sep = &t[end..end + len];
+    let split = if sep.contains(&b',') {
+        Split::Comma
+    } else {
+        Split::Whitespace
+    };
+    Some((String::from_utf8_lossy(sep).into_owned(), split))
+}
+
+/// Column names from a header comment like `//X Y Z Intensity` or `# x,y,z,r,g,b`: the last
+/// comment line with `n` entries, the first three being x, y and z (any case).
+fn names_from_comments(comments: &[&[u8]], n: usize) -> Option<Vec<String>> {
+    for raw in comments.iter().rev() {
+        let (content, _) = split_eol(raw);
+        let t = trim(content);
+        let body = if let Some(b) = t.strip_prefix(b"//") {
+            b
+        } else if let Some(b) = t.strip_prefix(b"#") {
+            b
+        } else {
+            continue;
+        };
+        let body = String::from_utf8_lossy(body).to_lowercase();
+        let names: Vec<String> = if body.contains(',') {
+            body.split(',').map(|s| s.trim().to_string()).collect()
+        } else {
+            body.split_whitespace().map(str::to_string).collect()
+        };
+        if names.len() != n || names[..3] != ["x", "y", "z"] {
+            continue;
+        }
+        let unique = names
+            .iter()
+            .enumerate()
+            .all(|(i, a)| !a.is_empty() && names[..i].iter().all(|b| b != a));
+        if unique {
+            return Some(names);
+        }
+    }
+    None
+}
+
+/// Streaming reader of `.xyz`, `.txt` and `.pts` point files.
+pub struct TextSource {
+    info: SourceInfo,
+    flavor: TextFlavor,
+    lines: LineReader,
+    split: Split,
+    ncols: usize,
+    /// Count declared by a PTS file.
+    declared: Option<u64>,
+    /// Points delivered so far.
+    read: u64,
+    /// The first point, parsed at open.
+    first: Option<Vec<f64>>,
+    /// Comment and blank lines since the last point.
+    tail: Vec<u8>,
+    /// The last point line had no terminator.
+    unterminated: bool,
+    exhausted: bool,
+    spans: Vec<(usize, usize)>,
+    values: Vec<f64>,
+    record: Vec<u8>,
+}
+
+impl TextSource {
+    /// Opens a text point file and reads its header and first point.
+    ///
+    /// # Errors
+    /// Unreadable file, empty file, a PTS file without a count line, a bad first point.
+    pub fn open(path: &Path, flavor: TextFlavor) -> Result<TextSource, IoError> {
+        let mut lines = LineReader::open(path)?;
+        let mut header = Vec::new();
+        let mut after_count = Vec::new();
+        let mut comment_lines: Vec<Vec<u8>> = Vec::new();
+        let mut declared = None;
+        let mut first = None;
+        let mut eol = LineEnding::Lf;
+        let mut separator = String::from(" ");
+        let mut split = Split::Whitespace;
+        let mut unterminated = false;
+        let mut spans = Vec::new();
+        let mut values = Vec::new();
+        let mut ncols = 3;
+        while lines.next_line()? {
+            let line = lines.line();
+            let raw = lines.raw();
+            let (content, _) = split_eol(raw);
+            if is_comment_or_blank(content) {
+                if declared.is_some() {
+                    after_count.extend_from_slice(raw);
+                } else {
+                    header.extend_from_slice(raw);
+                }
+                comment_lines.push(raw.to_vec());
+                continue;
+            }
+            if flavor == TextFlavor::Pts && declared.is_none() {
+                let t = trim(content);
+                declared = Some(parse_u64(t).ok_or_else(|| {
+                    IoError::header(
+                        path,
+                        format!("line {line}: expected the point count, found `{}`", show(t)),
+                    )
+                })?);
+                continue;
+            }
+            // The first point fixes the separator, the column count and the line terminator.
+            let Some((sep, sp)) = detect_separator(content) else {
+                return Err(IoError::invalid(
+                    path,
+                    format!("line {line}: a point needs at least 3 columns (x y z), found 1"),
+                ));
+            };
+            columns(content, sp, &mut spans);
+            if spans.len() < 3 {
+                return Err(IoError::invalid(
+                    path,
+                    format!(
+                        "line {line}: a point needs at least 3 columns (x y z), found {}",
+                        spans.len()
+                    ),
+                ));
+            }
+            ncols = spans.len();
+            parse_point(path, line, content, sp, ncols, &mut spans, &mut values)?;
+            separator = sep;
+            split = sp;
+            eol = LineEnding::of(raw).unwrap_or_default();
+            unterminated = LineEnding::of(raw).is_none();
+            if declared == Some(0) {
+                return Err(IoError::invalid(
+                    path,
+                    format!("line {line}: more points than the 0 the count line declares"),
+                ));
+            }
+            first = Some(values.clone());
+            break;
+        }
+        if first.is_none() {
+            if lines.line() == 0 {
+                let what = match flavor {
+                    TextFlavor::Pts => "empty file: expected the point count",
+                    TextFlavor::Xyz => "empty file: no points",
+                };
+                return Err(match flavor {
+                    TextFlavor::Pts => IoError::header(path, what),
+                    TextFlavor::Xyz => IoError::invalid(path, what),
+                });
+            }
+            match (flavor, declared) {
+                (TextFlavor::Xyz, _) => return Err(IoError::invalid(path, "no points")),
+                (TextFlavor::Pts, None) => {
+                    return Err(IoError::header(path, "no point count line"));
+                }
+                (TextFlavor::Pts, Some(n)) if n > 0 => {
+                    return Err(IoError::truncated(
+                        path,
+                        format!("the count line declares {n} points but the file holds none"),
+                    ));
+                }
+                _ => {}
+            }
+        }
+        let comment_refs: Vec<&[u8]> = comment_lines.iter().map(Vec::as_slice).collect();
+        let names =
+            names_from_comments(&comment_refs, ncols).unwrap_or_else(|| default_names(ncols, &[]));
+        let schema = f64_schema(path, &names)?;
+        let meta = TextMeta {
+            header,
+            after_count,
+            separator,
+            eol,
+        };
+        Ok(TextSource {
+            info: SourceInfo {
+                path: path.to_path_buf(),
+                format: flavor.format(),
+                schema,
+                len: declared,
+                faces: None,
+                meta: Meta::Text(meta),
+            },
+            flavor,
+            lines,
+            split,
+            ncols,
+            declared,
+            read: 0,
+            first,
+            tail: Vec::new(),
+            unterminated,
+            exhausted: false,
+            spans,
+            values,
+            record: Vec::new(),
+        })
+    }
+
+    /// Parses the next point into `self.values`; false when the points are exhausted.
+    fn next_point(&mut self) -> Result<bool, IoError> {
+        if self.exhausted || self.declared == Some(self.read) {
+            return Ok(false);
+        }
+        if let Some(v) = self.first.take() {
+            self.values = v;
+            return Ok(true);
+        }
+        let path = &self.info.path;
+        while self.lines.next_line()? {
+            let raw = self.lines.raw();
+            let (content, _) = split_eol(raw);
+            if is_comment_or_blank(content) {
+                self.tail.extend_from_slice(raw);
+                continue;
+            }
+            // Comment lines between points are not kept.
+            self.tail.clear();
+            self.unterminated = LineEnding::of(raw).is_none();
+            parse_point(
+                path,
+                self.lines.line(),
+                content,
+                self.split,
+                self.ncols,
+                &mut self.spans,
+                &mut self.values,
+            )?;
+            return Ok(true);
+        }
+        self.exhausted = true;
+        if let Some(n) = self.declared
+            && self.read < n
+        {
+            return Err(IoError::truncated(
+                path,
+                format!(
+                    "the count line declares {n} points but the file holds {}",
+                    self.read
+                ),
+            ));
+        }
+        Ok(false)
+    }
+}
+
+impl Source for TextSource {
+    fn info(&self) -> &SourceInfo {
+        &self.info
+    }
+
+    fn read_batch(&mut self, batch: &mut PointBatch, max: usize) -> Result<usize, IoError> {
+        batch.clear(self.read);
+        batch.record_len = self.info.schema.record_len;
+        let mut n = 0;
+        while n < max && self.next_point()? {
+            let p = encode_f64_record(&self.values, &mut self.record);
+            batch.push(p, &self.record);
+            self.read += 1;
+            n += 1;
+        }
+        Ok(n)
+    }
+
+    fn finish(mut self: Box<Self>) -> Result<Extras, IoError> {
+        // Skip the points the caller did not read.
+        while self.next_point()? {
+            self.read += 1;
+        }
+        if self.flavor == TextFlavor::Pts {
+            // Only comment lines may follow the declared points.
+            while self.lines.next_line()? {
+                let raw = self.lines.raw();
+                let (content, _) = split_eol(raw);
+                if is_comment_or_blank(content) {
+                    self.tail.extend_from_slice(raw);
+                    continue;
+                }
+                let line = self.lines.line();
+                let n = self.read;
+                return Err(if parse_u64(trim(content)).is_some() {
+                    IoError::Unsupported {
+                        path: self.info.path.clone(),
+                        detail: format!(
+                            "line {line}: a second point block (several scans in one PTS file)"
+                        ),
+                    }
+                } else {
+                    IoError::invalid(
+                        &self.info.path,
+                        format!("line {line}: more points than the {n} the count line declares"),
+                    )
+                });
+            }
+        }
+        let unterminated = self.unterminated && self.tail.is_empty();
+        Ok(Extras {
+            faces: None,
+            trailer: Trailer::Text(TextTrailer {
+                tail: std::mem::take(&mut self.tail),
+                unterminated,
+            }),
+        })
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Writer.
+
+/// Streaming writer of `.xyz`, `.txt` and `.pts` point files.
+///
+/// Like a text source it keeps the header and trailing comments, the separator and the line
+/// terminator. For any other layout it writes x, y, z and then every other field of the record,
+/// converted field by field, separated by single spaces; an XYZ file then starts with a
+/// `# x y z name…` line naming the extra columns.
+pub struct TextSink {
+    out: LineSink,
+    schema: Schema,
+    coords: [ScalarType; 3],
+    fields: Vec<usize>,
+    separator: String,
+    tally: Tally,
+    line: Vec<u8>,
+}
+
+impl TextSink {
+    /// Creates a sink that writes `count` points laid out like `like`.
+    ///
+    /// # Errors
+    /// The directory is not writable.
+    pub fn create(
+        path: &Path,
+        flavor: TextFlavor,
+        like: &SourceInfo,
+        count: u64,
+    ) -> Result<TextSink, IoError> {
+        let schema = like.schema.clone();
+        let fields = extra_fields(&schema);
+        let (meta, separator, eol) = match &like.meta {
+            Meta::Text(m) => (Some(m), m.separator.clone(), m.eol),
+            _ => (None, " ".to_string(), LineEnding::Lf),
+        };
+        let mut out = LineSink::create(path, eol)?;
+        match meta {
+            Some(m) => out.raw(&m.header)?,
+            None if flavor == TextFlavor::Xyz && !fields.is_empty() => {
+                let mut h = b"# x y z".to_vec();
+                for &f in &fields {
+                    h.push(b' ');
+                    h.extend_from_slice(schema.fields[f].name.as_bytes());
+                }
+                out.line(&h)?;
+            }
+            None => {}
+        }
+        if flavor == TextFlavor::Pts {
+            out.line(count.to_string().as_bytes())?;
+        }
+        if let Some(m) = meta {
+            out.raw(&m.after_count)?;
+        }
+        Ok(TextSink {
+            out,
+            coords: coord_types(&schema),
+            schema,
+            fields,
+            separator,
+            tally: Tally::new(count),
+            line: Vec::new(),
+        })
+    }
+}
+
+impl Sink for TextSink {
+    fn write_batch(&mut self, batch: &PointBatch) -> Result<(), IoError> {
+        check_batch(self.out.path(), &self.schema, batch)?;
+        self.tally.add(self.out.path(), batch.len())?;
+        let sep = self.separator.as_bytes();
+        for (i, p) in batch.positions.iter().enumerate() {
+            let rec = batch.record(i);
+            self.line.clear();
+            for (k, v) in [p.x, p.y, p.z].into_iter().enumerate() {
+                if k > 0 {
+                    self.line.extend_from_slice(sep);
+                }
+                push_value(&mut self.line, self.coords[k], v);
+            }
+            for &f in &self.fields {
+                self.line.extend_from_slice(sep);
+                let v = self.schema.get_f64(rec, f);
+                push_value(&mut self.line, self.schema.fields[f].ty, v);
+            }
+            self.out.line(&self.line)?;
+        }
+        Ok(())
+    }
+
+    fn finish(mut self: Box<Self>, extras: &Extras) -> Result<(), IoError> {
+        self.tally.check(self.out.path())?;
+        let mut unterminated = false;
+        if let Trailer::Text(t) = &extras.trailer {
+            self.out.raw(&t.tail)?;
+            unterminated = t.unterminated;
+        }
+        self.out.finish(unterminated)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::io::{Cloud, open};
+
+    fn write(dir: &Path, name: &str, text: &str) -> PathBuf {
+        let p = dir.join(name);
+        std::fs::write(&p, text).unwrap();
+        p
+    }
+
+    #[test]
+    fn separator_and_columns() {
+        let (sep, split) = detect_separator(b"  1.5, 2, 3").unwrap();
+        assert_eq!(sep, ", ");
+        let mut spans = Vec::new();
+        columns(b"1.5, 2, 3,", split, &mut spans);
+        assert_eq!(spans.len(), 3);
+        let (sep, _) = detect_separator(b"1\t2\t3").unwrap();
+        assert_eq!(sep, "\t");
+        assert!(detect_separator(b"17238").is_none());
+    }
+
+    #[test]
+    fn names_from_header_comment() {
+        let c: [&[u8]; 2] = [b"# scan\n", b"//X Y Z Intensity\n"];
+        assert_eq!(
+            names_from_comments(&c, 4).unwrap(),
+            vec!["x", "y", "z", "intensity"]
+        );
+        assert!(names_from_comments(&c, 5).is_none());
+        let c: [&[u8]; 1] = [b"# a b c d\n"];
+        assert!(names_from_comments(&c, 4).is_none());
+    }
+
+    #[test]
+    fn xyz_roundtrip_is_identical_with_comments_and_commas() {
+        let dir = tempfile::tempdir().unwrap();
+        let text = "# made by hand\r\n//X,Y,Z,Intensity\r\n1.5,2,-3,0.25\r\n4,5,6,NaN\r\n# end\r\n";
+        let p = write(dir.path(), "a.xyz", text);
+        let c = Cloud::read(&p, None).unwrap();
+        assert_eq!(c.len(), 2);
+        assert_eq!(c.info.schema.fields[3].name, "intensity");
+        assert_eq!(c.positions[0], DVec3::new(1.5, 2.0, -3.0));
+        assert!(c.info.schema.get_f64(&c.records[32..], 3).is_nan());
+        let q = dir.path().join("b.xyz");
+        c.write(&q, None).unwrap();
+        assert_eq!(std::fs::read_to_string(&q).unwrap(), text);
+    }
+
+    #[test]
+    fn pts_without_final_newline_roundtrips_bytewise() {
+        let dir = tempfile::tempdir().unwrap();
+        let text = "2\n1 2 3 10 255 0 0\n4 5 6 20 0 255 0";
+        let p = write(dir.path(), "a.pts", text);
+        let c = Cloud::read(&p, None).unwrap();
+        assert_eq!(c.info.len, Some(2));
+        assert_eq!(c.info.schema.fields[6].name, "c6");
+        let q = dir.path().join("b.pts");
+        c.write(&q, None).unwrap();
+        assert_eq!(std::fs::read_to_string(&q).unwrap(), text);
+    }
+
+    #[test]
+    fn pts_count_mismatch() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = write(dir.path(), "a.pts", "3\n1 2 3\n4 5 6\n");
+        let e = Cloud::read(&p, None).unwrap_err();
+        assert!(matches!(e, IoError::Truncated { .. }), "{e}");
+        let p = write(dir.path(), "b.pts", "1\n1 2 3\n4 5 6\n");
+        let e = Cloud::read(&p, None).unwrap_err();
+        assert!(e.to_string().contains("line 3"), "{e}");
+        let p = write(dir.path(), "c.pts", "1\n1 2 3\n1\n4 5 6\n");
+        assert!(matches!(
+            Cloud::read(&p, None).unwrap_err(),
+            IoError::Unsupported { .. }
+        ));
+        let p = write(dir.path(), "e.pts", "0\n1 2 3\n");
+        let e = Cloud::read(&p, None).unwrap_err();
+        assert!(e.to_string().contains("line 2: more points"), "{e}");
+        let p = write(dir.path(), "f.pts", "# nothing\n0\n");
+        assert_eq!(Cloud::read(&p, None).unwrap().len(), 0);
+        let p = write(dir.path(), "d.pts", "x\n1 2 3\n");
+        assert!(matches!(
+            Cloud::read(&p, None).unwrap_err(),
+            IoError::Header { .. }
+        ));
+    }
+
+    #[test]
+    fn bad_number_and_ragged_lines_name_the_line() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = write(dir.path(), "a.xyz", "1 2 3\n4 5 6\n7 x 9\n");
+        let e = Cloud::read(&p, None).unwrap_err();
+        assert!(matches!(e, IoError::Invalid { .. }));
+        assert!(
+            e.to_string().contains("line 3: bad number `x` in column 2"),
+            "{e}"
+        );
+        let p = write(dir.path(), "b.xyz", "1 2 3\n4 5 6 7\n");
+        let e = Cloud::read(&p, None).unwrap_err();
+        assert!(e.to_string().contains("line 2: 4 columns"), "{e}");
+        let p = write(dir.path(), "c.xyz", "1 2\n");
+        assert!(Cloud::read(&p, None).is_err());
+    }
+
+    #[test]
+    fn streams_in_batches() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut text = String::new();
+        for i in 0..10 {
+            text.push_str(&format!("{i} 0 0\n"));
+        }
+        let p = write(dir.path(), "a.txt", &text);
+        let mut src = open(&p, None).unwrap();
+        assert_eq!(src.info().len, None);
+        let mut b = PointBatch::default();
+        assert_eq!(src.read_batch(&mut b, 4).unwrap(), 4);
+        assert_eq!(src.read_batch(&mut b, 4).unwrap(), 4);
+        assert_eq!(b.start, 4);
+        assert_eq!(b.positions[0].x, 4.0);
+        assert_eq!(src.read_batch(&mut b, 4).unwrap(), 2);
+        assert_eq!(src.read_batch(&mut b, 4).unwrap(), 0);
+        src.finish().unwrap();
+    }
+
+    #[test]
+    fn sink_checks_the_announced_count() {
+        let dir = tempfile::tempdir().unwrap();
+        let c = Cloud::generated(vec![DVec3::ONE; 3], None, ScalarType::F64);
+        let p = dir.path().join("o.pts");
+        let mut sink = crate::io::create(&p, None, &c.info, 4).unwrap();
+        let mut b = PointBatch::with_capacity(24, 3);
+        for (pos, rec) in c.positions.iter().zip(c.records.chunks(24)) {
+            b.push(*pos, rec);
+        }
+        sink.write_batch(&b).unwrap();
+        assert!(sink.finish(&c.extras).is_err());
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0);
+    }
+}
