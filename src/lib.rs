@@ -12,6 +12,7 @@
 //! * [`denoise`]: the QEM operator (meshes and point clouds), the bilateral baseline, parameters
 //!   and statistics.
 //! * [`eval`]: synthetic shapes, noise, the quality metrics, Table I, rendering.
+//! * [`pipeline`]: source → denoise → sink with timing and a report.
 //! * [`cli`]: the `qemd` command line.
 
 #![warn(missing_docs)]
@@ -23,4 +24,5 @@ pub mod eval;
 pub mod geometry;
 pub mod io;
 pub mod neighbours;
+pub mod pipeline;
 pub mod points;

@@ -15,7 +15,7 @@ use super::normals::{pca_normals, vertex_normals};
 use super::qem::{StepCounts, count_duplicates};
 use super::{DenoiseError, NormalWeighting, Output, Params, Stats, Timer, origin_of};
 use crate::geometry::ExactSum;
-use crate::neighbours::{KnnIndex, MeshAdjacency};
+use crate::neighbours::{KnnIndex, MeshAdjacency, Neighbourhoods};
 use crate::points::Faces;
 
 /// Mean length of the unique undirected edges, summed exactly.
@@ -27,16 +27,16 @@ pub fn mean_edge_length(pos: &[DVec3], adjacency: &MeshAdjacency) -> f64 {
         .mean()
 }
 
-/// Mean distance from each finite point to its nearest other point, summed exactly.
-pub fn mean_spacing(index: &KnnIndex) -> Result<f64, DenoiseError> {
-    let (lists, radii) = index.knn_all(2)?;
+/// Mean distance from each finite point to its nearest other point, summed exactly, read off
+/// k-NN lists that include the point itself (k ≥ 2).
+pub fn mean_spacing(index: &KnnIndex, lists: &Neighbourhoods) -> f64 {
     let mut sum = ExactSum::new();
-    for (i, r) in radii.iter().enumerate() {
-        if lists.get(i).len() == 2 {
-            sum.add(r.sqrt());
+    for i in 0..lists.len() {
+        if let Some(&j) = lists.get(i).iter().find(|&&j| j as usize != i) {
+            sum.add(index.dist2(i, j as usize).sqrt());
         }
     }
-    Ok(sum.mean())
+    sum.mean()
 }
 
 /// The bilateral offset of `v` along unit normal `n` from its neighbours' positions.
@@ -144,7 +144,8 @@ pub fn mesh(pos: &[DVec3], faces: &Faces, params: &Params) -> Result<Output, Den
     })
 }
 
-/// Bilateral point-cloud denoising over k nearest neighbours with PCA normals.
+/// Bilateral point-cloud denoising over k nearest neighbours with PCA normals. As in the QEM
+/// point operator, the k-NN graph comes from the input positions and is reused by every pass.
 ///
 /// # Errors
 /// Fewer finite points than k.
@@ -155,17 +156,15 @@ pub fn points(pos: &[DVec3], origin: DVec3, params: &Params) -> Result<Output, D
         non_finite: pos.iter().filter(|p| !p.is_finite()).count() as u64,
         ..Stats::default()
     };
-    let k = params.k();
-    let sigma_c = mean_spacing(&KnnIndex::build(pos, origin)?)?;
+    let index = KnnIndex::build(pos, origin)?;
+    let (lists, _) = index.knn_all(params.k())?;
+    let sigma_c = mean_spacing(&index, &lists);
+    drop(index);
+    stats.duplicates = count_duplicates(pos, &lists);
+    timer.lap("neighbours", &mut stats);
     let r2 = 4.0 * sigma_c * sigma_c;
     let mut cur = pos.to_vec();
     for pass in 0..params.iterations {
-        let index = KnnIndex::build(&cur, origin)?;
-        let (lists, _) = index.knn_all(k)?;
-        if pass == 0 {
-            stats.duplicates = count_duplicates(&cur, &lists);
-        }
-        timer.lap("neighbours", &mut stats);
         let (normals, degenerate) = pca_normals(&cur, &lists);
         if pass == 0 {
             stats.degenerate_neighbourhoods = degenerate;
@@ -182,8 +181,9 @@ pub fn points(pos: &[DVec3], origin: DVec3, params: &Params) -> Result<Output, D
                 let nbrs = lists
                     .get(i)
                     .iter()
-                    .filter(|&&u| u as usize != i && index.dist2(i, u as usize) <= r2)
-                    .map(|&u| cur[u as usize]);
+                    .filter(|&&u| u as usize != i)
+                    .map(|&u| cur[u as usize])
+                    .filter(|q| (*q - v).length_squared() <= r2);
                 let h = offset(v, normals[i], nbrs, sigma_c, buf);
                 finish(v, normals[i], h)
             })

@@ -190,10 +190,10 @@ impl Params {
         if !(1..=1000).contains(&self.iterations) {
             return bad("iterations", "must be between 1 and 1000");
         }
-        if !(self.eps > 0.0 && self.eps < 1.0) {
+        if self.eps.is_nan() || self.eps <= 0.0 || self.eps >= 1.0 {
             return bad("eps", "must be in (0, 1)");
         }
-        if !(self.lambda > 0.0 && self.lambda.is_finite()) {
+        if !self.lambda.is_finite() || self.lambda <= 0.0 {
             return bad("lambda", "must be finite and > 0");
         }
         self.solver().validate()?;

@@ -185,6 +185,10 @@ pub fn count_duplicates(pos: &[DVec3], lists: &Neighbourhoods) -> u64 {
 /// The QEM operator on a point cloud: k nearest neighbours (the point included) relative to
 /// `origin`, PCA normals, `params.iterations` Jacobi passes.
 ///
+/// The k-NN graph is built once, on the input positions, and every pass reuses it (normals and
+/// quadrics are re-evaluated on the updated positions). A fixed graph keeps the reach of `n`
+/// passes at `2n` graph hops, which is what lets the tiled path reproduce this result exactly.
+///
 /// # Errors
 /// Fewer finite points than k.
 pub fn points(pos: &[DVec3], origin: DVec3, params: &Params) -> Result<Output, DenoiseError> {
@@ -194,28 +198,35 @@ pub fn points(pos: &[DVec3], origin: DVec3, params: &Params) -> Result<Output, D
         non_finite: pos.iter().filter(|p| !p.is_finite()).count() as u64,
         ..Stats::default()
     };
-    let k = params.k();
+    let index = KnnIndex::build(pos, origin)?;
+    let (lists, _) = index.knn_all(params.k())?;
+    drop(index);
+    stats.duplicates = count_duplicates(pos, &lists);
+    timer.lap("neighbours", &mut stats);
+    let positions = points_passes(pos, &lists, params, &mut stats, &mut timer);
+    Ok(Output { positions, stats })
+}
+
+/// `params.iterations` QEM passes over a fixed neighbour graph.
+pub fn points_passes(
+    pos: &[DVec3],
+    lists: &Neighbourhoods,
+    params: &Params,
+    stats: &mut Stats,
+    timer: &mut Timer,
+) -> Vec<DVec3> {
     let solve = params.solver();
     let mut cur = pos.to_vec();
     for pass in 0..params.iterations {
-        let index = KnnIndex::build(&cur, origin)?;
-        let (lists, _) = index.knn_all(k)?;
-        if pass == 0 {
-            stats.duplicates = count_duplicates(&cur, &lists);
-        }
-        timer.lap("neighbours", &mut stats);
-        let (normals, degenerate) = pca_normals(&cur, &lists);
+        let (normals, degenerate) = pca_normals(&cur, lists);
         if pass == 0 {
             stats.degenerate_neighbourhoods = degenerate;
         }
-        timer.lap("normals", &mut stats);
-        let (next, counts) = points_step(&cur, &lists, &normals, solve);
-        counts.book(&mut stats);
+        timer.lap("normals", stats);
+        let (next, counts) = points_step(&cur, lists, &normals, solve);
+        counts.book(stats);
         cur = next;
-        timer.lap("solve", &mut stats);
+        timer.lap("solve", stats);
     }
-    Ok(Output {
-        positions: cur,
-        stats,
-    })
+    cur
 }

@@ -252,7 +252,8 @@ pub fn scale_length(positions: &[DVec3], faces: Option<&Faces>) -> Result<f64, E
                 });
             }
             let index = KnnIndex::build(positions, crate::denoise::origin_of(positions))?;
-            mean_spacing(&index)?
+            let (lists, _) = index.knn_all(2)?;
+            mean_spacing(&index, &lists)
         }
     };
     if !(l > 0.0 && l.is_finite()) {

@@ -163,7 +163,7 @@ impl Solve {
     pub fn offset(&self, q: &Quadric) -> Option<DVec3> {
         let e = q.a.eigen();
         let lmax = e.values[2];
-        if !(lmax > 0.0) {
+        if lmax.is_nan() || lmax <= 0.0 {
             return None;
         }
         // g = A·0 + b: the gradient / 2 at the vertex.
@@ -234,7 +234,7 @@ pub fn pca_normal(pts: impl Iterator<Item = DVec3> + Clone) -> Option<PlaneFit> 
         return None;
     }
     let e = cov.eigen();
-    if !(e.values[1] > DEGENERATE_RATIO * e.values[2]) {
+    if e.values[1].is_nan() || e.values[1] <= DEGENERATE_RATIO * e.values[2] {
         return None;
     }
     Some(PlaneFit {
@@ -310,6 +310,56 @@ mod tests {
                 .collect();
             let fit = pca_normal(pts.iter().copied()).unwrap();
             prop_assert!(fit.normal.dot(n).abs() > (5f64).to_radians().cos());
+        }
+    }
+
+    fn vec3(t: (f64, f64, f64)) -> DVec3 {
+        DVec3::new(t.0, t.1, t.2)
+    }
+
+    proptest! {
+        /// Points sampled on two planes: the robust minimiser lands exactly on their common edge,
+        /// at the edge point closest to the vertex. On three planes the plain minimiser is the
+        /// corner.
+        #[test]
+        fn samples_on_two_or_three_planes_move_onto_edge_or_corner(
+            normals in proptest::collection::vec((-1.0f64..1.0, -1.0f64..1.0, -1.0f64..1.0), 3),
+            corner in (-50.0f64..50.0, -50.0f64..50.0, -50.0f64..50.0),
+            v in (-5.0f64..5.0, -5.0f64..5.0, -5.0f64..5.0),
+            samples in proptest::collection::vec((0usize..3, -3.0f64..3.0, -3.0f64..3.0), 6..40),
+        ) {
+            let ns: Vec<DVec3> = normals.into_iter().filter_map(unit).collect();
+            prop_assume!(ns.len() == 3);
+            let det = ns[0].dot(ns[1].cross(ns[2])).abs();
+            prop_assume!(det > 0.3);
+            let corner = vec3(corner);
+            let v = corner + vec3(v);
+            for planes in [2usize, 3] {
+                let mut q = Quadric::ZERO;
+                let mut used = [false; 3];
+                for &(i, s, t) in &samples {
+                    let i = i % planes;
+                    used[i] = true;
+                    let u = any_orthogonal(ns[i]);
+                    let w = ns[i].cross(u);
+                    let p = corner + u * s + w * t;
+                    q.add_plane(ns[i], p - v, 1.0);
+                }
+                prop_assume!(used[..planes].iter().all(|&b| b));
+                let solve = if planes == 2 { Solve::Robust { eps: 1e-3 } } else { Solve::Plain };
+                let w = v + solve.offset(&q).unwrap();
+                let scale = 1.0 + corner.length();
+                for n in &ns[..planes] {
+                    prop_assert!((n.dot(w - corner)).abs() < 1e-9 * scale, "off plane: {}", n.dot(w - corner));
+                }
+                if planes == 3 {
+                    prop_assert!((w - corner).length() < 1e-9 * scale);
+                } else {
+                    // The closest edge point: the step is orthogonal to the edge direction.
+                    let dir = ns[0].cross(ns[1]).normalize();
+                    prop_assert!((w - v).dot(dir).abs() < 1e-9 * scale);
+                }
+            }
         }
     }
 

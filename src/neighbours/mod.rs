@@ -245,29 +245,105 @@ impl KnnIndex {
             });
         }
         let n = self.local.len();
-        let lists: Vec<(Vec<u32>, f64)> = (0..n)
-            .into_par_iter()
-            .with_min_len(1024)
-            .map(|i| {
-                let mut v = Vec::with_capacity(k);
-                if !self.local[i].iter().all(|c| c.is_finite()) {
-                    return (v, 0.0);
+        // Queries run in Morton order: consecutive queries touch the same leaves, which is worth
+        // about 2× over input order on scanner-ordered or shuffled clouds.
+        let order = morton_order(&self.local);
+        let chunk = 4096;
+        let in_order: Vec<(Vec<u32>, Vec<f64>)> = order
+            .par_chunks(chunk)
+            .map(|ids| {
+                let mut lists = Vec::with_capacity(ids.len() * k);
+                let mut radii = Vec::with_capacity(ids.len());
+                for &i in ids {
+                    let i = i as usize;
+                    if self.local[i].iter().all(|c| c.is_finite()) {
+                        let start = lists.len();
+                        let r = self.knn_of(i, k, &mut lists);
+                        debug_assert_eq!(lists.len() - start, k);
+                        radii.push(r);
+                    } else {
+                        radii.push(f64::NAN);
+                    }
                 }
-                let r = self.knn_of(i, k, &mut v);
-                (v, r)
+                (lists, radii)
             })
             .collect();
+        // Scatter back to input order: finite points own k slots, non-finite ones none.
         let mut offsets = Vec::with_capacity(n + 1);
-        let mut indices = Vec::with_capacity(n * k);
-        let mut radii = Vec::with_capacity(n);
         offsets.push(0u32);
-        for (v, r) in lists {
-            indices.extend_from_slice(&v);
-            offsets.push(indices.len() as u32);
-            radii.push(r);
+        let mut total = 0u32;
+        for p in &self.local {
+            if p.iter().all(|c| c.is_finite()) {
+                total += k as u32;
+            }
+            offsets.push(total);
+        }
+        let mut indices = vec![0u32; total as usize];
+        let mut radii = vec![0.0f64; n];
+        for (ids, (lists, rs)) in order.chunks(chunk).zip(&in_order) {
+            let mut at = 0;
+            for (&i, &r) in ids.iter().zip(rs) {
+                let i = i as usize;
+                if !r.is_nan() {
+                    let o = offsets[i] as usize;
+                    indices[o..o + k].copy_from_slice(&lists[at..at + k]);
+                    at += k;
+                    radii[i] = r;
+                }
+            }
         }
         Ok((Neighbourhoods { offsets, indices }, radii))
     }
+}
+
+/// Interleaves the low 21 bits of `v` with two zero bits between each.
+fn spread3(mut v: u64) -> u64 {
+    v &= 0x1f_ffff;
+    v = (v | v << 32) & 0x1f00000000ffff;
+    v = (v | v << 16) & 0x1f0000ff0000ff;
+    v = (v | v << 8) & 0x100f00f00f00f00f;
+    v = (v | v << 4) & 0x10c30c30c30c30c3;
+    v = (v | v << 2) & 0x1249249249249249;
+    v
+}
+
+/// A permutation of the finite points' indices (non-finite ones last) sorted by 63-bit Morton code
+/// over their bounding box, ties by index.
+pub fn morton_order(local: &[[f64; 3]]) -> Vec<u32> {
+    let mut lo = [f64::INFINITY; 3];
+    let mut hi = [f64::NEG_INFINITY; 3];
+    for p in local.iter().filter(|p| p.iter().all(|c| c.is_finite())) {
+        for a in 0..3 {
+            lo[a] = lo[a].min(p[a]);
+            hi[a] = hi[a].max(p[a]);
+        }
+    }
+    let scale: Vec<f64> = (0..3)
+        .map(|a| {
+            let e = hi[a] - lo[a];
+            if e > 0.0 {
+                ((1u64 << 21) - 1) as f64 / e
+            } else {
+                0.0
+            }
+        })
+        .collect();
+    let mut keyed: Vec<(u64, u32)> = local
+        .par_iter()
+        .enumerate()
+        .map(|(i, p)| {
+            if !p.iter().all(|c| c.is_finite()) {
+                return (u64::MAX, i as u32);
+            }
+            let q = |a: usize| ((p[a] - lo[a]) * scale[a]) as u64;
+            (
+                spread3(q(0)) | spread3(q(1)) << 1 | spread3(q(2)) << 2,
+                i as u32,
+            )
+        })
+        .collect();
+    keyed.par_sort_unstable();
+    keyed.into_iter().map(|(_, i)| i).collect()
 }
 
 #[cfg(test)]

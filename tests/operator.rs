@@ -1,0 +1,235 @@
+//! Properties of the denoising operators on synthetic input: determinism across thread counts,
+//! equivariance under rigid motions, and preservation of clean sharp features.
+
+use glam::{DMat3, DQuat, DVec3};
+use proptest::prelude::*;
+use qem_denoise::denoise::{Method, Params, SolveKind, denoise};
+use qem_denoise::points::Faces;
+
+/// A small deterministic generator (xorshift) so the fixtures need no RNG crate.
+struct Rng(u64);
+
+impl Rng {
+    fn next(&mut self) -> f64 {
+        self.0 ^= self.0 << 13;
+        self.0 ^= self.0 >> 7;
+        self.0 ^= self.0 << 17;
+        (self.0 >> 11) as f64 / (1u64 << 53) as f64
+    }
+    fn gauss(&mut self) -> f64 {
+        let (u, v) = (self.next().max(1e-300), self.next());
+        (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()
+    }
+}
+
+/// Noisy samples of the unit sphere.
+fn noisy_sphere(n: usize, sigma: f64, seed: u64) -> Vec<DVec3> {
+    let mut r = Rng(seed.wrapping_mul(0x9e3779b97f4a7c15) | 1);
+    (0..n)
+        .map(|_| {
+            let p = DVec3::new(r.gauss(), r.gauss(), r.gauss()).normalize();
+            p + DVec3::new(r.gauss(), r.gauss(), r.gauss()) * sigma
+        })
+        .collect()
+}
+
+/// A noisy height-field mesh over an `n × n` grid.
+fn noisy_grid(n: u32, sigma: f64, seed: u64) -> (Vec<DVec3>, Faces) {
+    let mut r = Rng(seed.wrapping_mul(0x9e3779b97f4a7c15) | 1);
+    let mut pos = Vec::new();
+    for j in 0..n {
+        for i in 0..n {
+            let (x, y) = (i as f64 / n as f64, j as f64 / n as f64);
+            let z = 0.2 * (3.0 * x).sin() * (2.0 * y).cos();
+            pos.push(DVec3::new(x, y, z) + DVec3::new(r.gauss(), r.gauss(), r.gauss()) * sigma);
+        }
+    }
+    let mut faces = Faces::new();
+    for j in 0..n - 1 {
+        for i in 0..n - 1 {
+            let a = j * n + i;
+            faces.push(&[a, a + 1, a + n]);
+            faces.push(&[a + 1, a + n + 1, a + n]);
+        }
+    }
+    (pos, faces)
+}
+
+fn run_with_threads(
+    threads: usize,
+    pos: &[DVec3],
+    faces: Option<&Faces>,
+    params: &Params,
+) -> Vec<DVec3> {
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .unwrap();
+    pool.install(|| denoise(pos, faces, params).unwrap().positions)
+}
+
+fn bits(v: &[DVec3]) -> Vec<[u64; 3]> {
+    v.iter()
+        .map(|p| [p.x.to_bits(), p.y.to_bits(), p.z.to_bits()])
+        .collect()
+}
+
+#[test]
+fn output_is_identical_for_any_thread_count() {
+    let cloud = noisy_sphere(6000, 0.01, 1);
+    let (grid, faces) = noisy_grid(60, 0.004, 2);
+    let cases: Vec<(Params, bool)> = vec![
+        (Params::default(), false),
+        (
+            Params {
+                knn: Some(12),
+                iterations: 2,
+                ..Params::default()
+            },
+            false,
+        ),
+        (
+            Params {
+                method: Method::Bilateral,
+                iterations: 2,
+                ..Params::default()
+            },
+            false,
+        ),
+        (Params::default(), true),
+        (
+            Params {
+                method: Method::Bilateral,
+                iterations: 2,
+                ..Params::default()
+            },
+            true,
+        ),
+    ];
+    for (params, mesh) in cases {
+        let (pos, f) = if mesh {
+            (&grid[..], Some(&faces))
+        } else {
+            (&cloud[..], None)
+        };
+        let one = bits(&run_with_threads(1, pos, f, &params));
+        for t in [2, 3, 8] {
+            assert_eq!(
+                one,
+                bits(&run_with_threads(t, pos, f, &params)),
+                "{params:?} mesh={mesh} threads={t}"
+            );
+        }
+    }
+}
+
+fn rigid(q: DQuat, t: DVec3, v: &[DVec3]) -> Vec<DVec3> {
+    v.iter().map(|&p| q * p + t).collect()
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(12))]
+
+    /// Denoising a rotated and translated input gives the rotated and translated output.
+    #[test]
+    fn operator_commutes_with_rigid_motions(
+        axis in (-1.0f64..1.0, -1.0f64..1.0, -1.0f64..1.0),
+        angle in -3.1f64..3.1,
+        t in (-1e3f64..1e3, -1e3f64..1e3, -1e3f64..1e3),
+        seed in 0u64..1000,
+        mode in 0usize..4,
+    ) {
+        let axis = DVec3::new(axis.0, axis.1, axis.2);
+        prop_assume!(axis.length() > 1e-2);
+        let q = DQuat::from_axis_angle(axis.normalize(), angle);
+        let t = DVec3::new(t.0, t.1, t.2);
+        let (pos, faces) = if mode < 2 {
+            (noisy_sphere(1500, 0.01, seed), None)
+        } else {
+            let (p, f) = noisy_grid(25, 0.005, seed);
+            (p, Some(f))
+        };
+        let params = match mode {
+            0 | 2 => Params { solve: SolveKind::Robust, ..Params::default() },
+            _ => Params { method: Method::Bilateral, iterations: 2, ..Params::default() },
+        };
+        let a = denoise(&pos, faces.as_ref(), &params).unwrap().positions;
+        let b = denoise(&rigid(q, t, &pos), faces.as_ref(), &params).unwrap().positions;
+        let expect = rigid(q, t, &a);
+        for (x, y) in b.iter().zip(&expect) {
+            // Coordinates near 1e3 carry ~1e-13 absolute rounding; the motion itself adds more.
+            prop_assert!((*x - *y).length() < 1e-8, "{} vs {}", x, y);
+        }
+    }
+}
+
+/// The clean corner of a cube sampled as a point cloud, far from the origin and rotated: points
+/// whose neighbourhood lies on one face stay exactly on it; points near the edges, whose PCA
+/// normals blend two faces, take bounded steps and stay on the surface.
+#[test]
+fn clean_corner_cloud_keeps_its_planes() {
+    let mut pts = Vec::new();
+    let n = 30;
+    let h = 1.0 / n as f64;
+    for i in 0..n {
+        for j in 0..n {
+            let (a, b) = (i as f64 * h, j as f64 * h);
+            pts.push(DVec3::new(0.0, a + 0.5 * h, b + 0.5 * h));
+            pts.push(DVec3::new(a + 0.5 * h, 0.0, b));
+            pts.push(DVec3::new(a, b, 0.0));
+        }
+    }
+    let rot = DMat3::from_quat(DQuat::from_euler(glam::EulerRot::XYZ, 0.3, -0.7, 1.1));
+    let off = DVec3::new(500_000.0, 5_000_000.0, 120.0);
+    let moved: Vec<DVec3> = pts.iter().map(|&p| rot * p + off).collect();
+    let out = denoise(&moved, None, &Params::default()).unwrap();
+    let mut interior = 0;
+    for (o, p) in out.positions.iter().zip(&pts) {
+        let local = rot.transpose() * (*o - off);
+        let step = (local - *p).length();
+        // Distance of the start point to the second-nearest coordinate plane, i.e. to an edge.
+        let mut c = [p.x.abs(), p.y.abs(), p.z.abs()];
+        c.sort_by(f64::total_cmp);
+        // Two k-NN radii (k = 16, about 2.3 h each) from an edge, every normal used is exact.
+        if c[1] > 6.0 * h {
+            interior += 1;
+            assert!(step < 1e-8, "interior point {p} moved by {step}");
+        } else {
+            // Near features the operator snaps points towards the edge or corner (the paper's
+            // feature enhancement): bounded steps that stay on the surface.
+            let surface = local.x.abs().min(local.y.abs()).min(local.z.abs());
+            assert!(step < 4.0 * h, "point {p} near an edge moved by {step}");
+            assert!(
+                surface < 0.25 * h,
+                "point {p} left the surface by {surface}"
+            );
+        }
+    }
+    assert!(interior > pts.len() / 3);
+}
+
+/// A vertex displaced off a flat region returns exactly onto the plane, and vertices of a clean
+/// plane do not move.
+#[test]
+fn displaced_vertex_on_a_plane_returns_to_it() {
+    let (mut pos, faces) = noisy_grid(20, 0.0, 3);
+    for p in &mut pos {
+        p.z = 0.0;
+    }
+    let k = 10 * 20 + 10;
+    pos[k].z = 0.01;
+    let out = denoise(&pos, Some(&faces), &Params::default()).unwrap();
+    // The displaced vertex's own tilted plane pulls a little; every other plane in its 2-ring is
+    // z = 0 exactly, so the result lies much closer to the plane than it started.
+    assert!(
+        out.positions[k].z.abs() < 0.01 * 0.2,
+        "{}",
+        out.positions[k].z
+    );
+    for (i, p) in out.positions.iter().enumerate() {
+        if (p - pos[i]).length() > 0.0 {
+            // Only vertices whose ring saw the tilted faces may move.
+            assert!((pos[i] - pos[k]).length() < 0.25, "vertex {i} moved");
+        }
+    }
+}
