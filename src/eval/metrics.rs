@@ -14,6 +14,8 @@
 //!   vertex to the clean surface), `std_xyz` (√ of the mean over the axes of var(r_axis)),
 //!   `ang_deg` (mean angle between corresponding face normals) and `dvol_pct` (relative change of
 //!   the enclosed volume, closed clean meshes only).
+//!   For a clean cloud, [`Reference::with_surface`] adds the mesh it was sampled from, so that
+//!   `surf_std` and `surf_rms` apply to clouds too.
 //! * **Point-cloud metrics**, when the result has no faces or no correspondence, over its finite
 //!   points: point-to-mesh distance (mean and RMS of the unsigned distance to the clean surface)
 //!   and the symmetric Chamfer distance
@@ -320,6 +322,39 @@ impl Reference {
         self.l
     }
 
+    /// Measures distances to the surface of another mesh from now on, typically the mesh a clean
+    /// cloud was sampled from: `surf_std`, `surf_rms` and the point-to-mesh errors then apply to
+    /// clouds too, while L and the Chamfer samples stay those of the clean input.
+    ///
+    /// # Errors
+    /// Bad face indices, a referenced vertex that is not finite, no face with area.
+    pub fn with_surface(
+        mut self,
+        positions: &[DVec3],
+        faces: &Faces,
+    ) -> Result<Reference, EvalError> {
+        check_faces(positions.len(), faces)?;
+        let used = referenced(positions.len(), faces);
+        if let Some(index) = (0..positions.len()).find(|&i| used[i] && !positions[i].is_finite()) {
+            return Err(EvalError::NonFinite {
+                what: "surface mesh",
+                index,
+            });
+        }
+        let origin = origin_of(
+            &positions
+                .iter()
+                .zip(&used)
+                .filter(|(_, u)| **u)
+                .map(|(p, _)| *p)
+                .collect::<Vec<_>>(),
+        );
+        self.surface = Some(Surface::build(positions, faces, origin)?.ok_or_else(|| {
+            EvalError::Degenerate("the surface mesh has no face with area".into())
+        })?);
+        Ok(self)
+    }
+
     /// The clean positions.
     pub fn positions(&self) -> &[DVec3] {
         &self.positions
@@ -432,17 +467,19 @@ impl Reference {
             })
             .sum();
         m.std_xyz = Some((var / 3.0).sqrt() * scale);
-        let (Some(surface), Some(faces)) = (&self.surface, &self.faces) else {
+        if let Some(surface) = &self.surface {
+            let s: Vec<f64> = idx
+                .par_iter()
+                .with_min_len(1024)
+                .map(|&i| surface.signed_distance(denoised[i]))
+                .collect();
+            let (_, std, rms) = moments(&s);
+            m.surf_std = Some(std * scale);
+            m.surf_rms = Some(rms * scale);
+        }
+        let Some(faces) = &self.faces else {
             return Ok(());
         };
-        let s: Vec<f64> = idx
-            .par_iter()
-            .with_min_len(1024)
-            .map(|&i| surface.signed_distance(denoised[i]))
-            .collect();
-        let (_, std, rms) = moments(&s);
-        m.surf_std = Some(std * scale);
-        m.surf_rms = Some(rms * scale);
         // ang_deg over faces with area before and after.
         let mut angles = ExactSum::new();
         for (face, nc) in faces.iter().zip(&self.face_normals) {
@@ -668,6 +705,51 @@ mod tests {
         // Chamfer against the 98 mesh vertices: positive, finite.
         assert!(m.chamfer.unwrap() > 0.0 && m.chamfer.unwrap().is_finite());
         assert_eq!(m.surf_std, None);
+    }
+
+    #[test]
+    fn cloud_sampled_from_a_mesh_is_measured_against_that_surface() {
+        let cube = Shape::Cube.mesh(4).unwrap();
+        let clean: Vec<DVec3> = SurfaceSampler::new(&cube.positions, &cube.faces, 2000, 3)
+            .unwrap()
+            .flatten()
+            .collect();
+        let r = Reference::new(clean.clone(), None)
+            .unwrap()
+            .with_surface(&cube.positions, &cube.faces)
+            .unwrap();
+        let same = r.evaluate(&clean, None).unwrap();
+        assert!(same.surf_rms.unwrap() < 1e-9);
+        assert_eq!(same.chamfer, Some(0.0));
+        // Every point 0.2 L outwards: surf_rms 20 %, no spread, Chamfer > 0.
+        let delta = 0.2 * r.l();
+        let out: Vec<DVec3> = clean
+            .iter()
+            .map(|p| {
+                let a = p.abs();
+                let n = if a.x >= a.y && a.x >= a.z {
+                    DVec3::X * p.x.signum()
+                } else if a.y >= a.z {
+                    DVec3::Y * p.y.signum()
+                } else {
+                    DVec3::Z * p.z.signum()
+                };
+                *p + n * delta
+            })
+            .collect();
+        let m = r.evaluate(&out, None).unwrap();
+        assert!(m.correspondence);
+        assert!((m.surf_rms.unwrap() - 20.0).abs() < 1e-6);
+        assert!(m.surf_std.unwrap() < 1e-6);
+        assert!((m.point_to_mesh_mean.unwrap() - 20.0).abs() < 1e-6);
+        assert!(m.chamfer.unwrap() > 0.0);
+        assert_eq!(m.ang_deg, None);
+        assert!(
+            Reference::new(clean, None)
+                .unwrap()
+                .with_surface(&cube.positions, &Faces::from_triangles(&[[0, 0, 1]]))
+                .is_err()
+        );
     }
 
     #[test]

@@ -12,7 +12,7 @@
 //!   `dvol_pct`, point-to-mesh and Chamfer errors, all in % of L).
 //! * [`table`]: the Table I protocol (noise → denoise → metrics over levels, seeds and a list of
 //!   named methods) with a Markdown formatter.
-//! * [`render`]: z-buffered rasterisation of meshes and splatting of point clouds to PNG.
+//! * [`render`](mod@render): z-buffered rasterisation of meshes and splatting of point clouds to PNG.
 //!
 //! ```text
 //!  Shape ──mesh()──▶ Mesh ──add_noise()──▶ noisy ──denoise()──▶ denoised
@@ -30,10 +30,10 @@ pub mod synth;
 pub mod table;
 
 pub use metrics::{Metrics, Reference, evaluate};
-pub use noise::{NoiseModel, NoiseSpec, Noisy, add_noise};
+pub use noise::{NoiseModel, NoiseSpec, Noisy, add_noise, add_noise_with_length};
 pub use render::{Image, PointShading, RenderOptions, Shading, View, render};
 pub use synth::{Shape, SurfaceSampler};
-pub use table::{Table, TableMethod, TableSpec, run_table};
+pub use table::{Table, TableMethod, TableProgress, TableSpec, run_table, run_table_with_progress};
 
 use glam::DVec3;
 use thiserror::Error;
