@@ -55,6 +55,9 @@ pub enum DenoiseError {
     /// Nothing to denoise.
     #[error("the input has no usable points")]
     Empty,
+    /// Every usable point sits at the same position: there is no surface.
+    #[error("all {0} points are identical; there is no surface to denoise")]
+    AllIdentical(usize),
 }
 
 impl From<GeometryError> for DenoiseError {
@@ -237,6 +240,9 @@ pub fn denoise(
     if finite == 0 {
         return Err(DenoiseError::Empty);
     }
+    if finite > 1 && Aabb::from_points(positions).size() == DVec3::ZERO {
+        return Err(DenoiseError::AllIdentical(finite));
+    }
     match faces {
         Some(f) if params.mesh_mode(true) => {
             if let Some(i) = positions.iter().position(|p| !p.is_finite()) {
@@ -312,6 +318,11 @@ mod tests {
         assert_eq!(
             denoise(&nan, None, &Params::default()).unwrap_err(),
             DenoiseError::Empty
+        );
+        let same = vec![DVec3::ONE; 40];
+        assert_eq!(
+            denoise(&same, None, &Params::default()).unwrap_err(),
+            DenoiseError::AllIdentical(40)
         );
     }
 }

@@ -424,6 +424,7 @@ impl AtomicFile {
         tmp.as_file()
             .sync_data()
             .map_err(|e| IoError::io(&target, e))?;
+        fix_permissions(tmp.as_file(), &target).map_err(|e| IoError::io(&target, e))?;
         tmp.persist(&target)
             .map_err(|e| IoError::io(&target, e.error))?;
         Ok(())
@@ -445,6 +446,23 @@ impl Write for AtomicFile {
     fn flush(&mut self) -> std::io::Result<()> {
         self.tmp.flush()
     }
+}
+
+/// The temporary file is created owner-only; give the result the permissions of the file it
+/// replaces, or the usual rw-r--r-- of a new file.
+#[cfg(unix)]
+fn fix_permissions(file: &File, target: &Path) -> std::io::Result<()> {
+    use std::os::unix::fs::PermissionsExt;
+    let perms = std::fs::metadata(target)
+        .map(|m| m.permissions())
+        .unwrap_or_else(|_| std::fs::Permissions::from_mode(0o644));
+    file.set_permissions(perms)
+}
+
+/// Elsewhere a fresh temporary file already has ordinary permissions.
+#[cfg(not(unix))]
+fn fix_permissions(_file: &File, _target: &Path) -> std::io::Result<()> {
+    Ok(())
 }
 
 /// Points per batch for whole-file reads and writes.
@@ -607,5 +625,11 @@ mod tests {
         f.write_all(b"whole").unwrap();
         f.commit().unwrap();
         assert_eq!(std::fs::read(&target).unwrap(), b"whole");
+        #[cfg(unix)]
+        {
+            use std::os::unix::fs::PermissionsExt;
+            let mode = std::fs::metadata(&target).unwrap().permissions().mode();
+            assert_eq!(mode & 0o777, 0o644, "readable by others like any new file");
+        }
     }
 }

@@ -1,0 +1,393 @@
+//! The `qemd` binary end to end: bad input gets a one-line error naming the file and a non-zero
+//! exit, nothing panics, no output (or temporary file) is left behind, and the input is never
+//! modified. Also the happy paths of every subcommand.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+use qem_denoise::io::Cloud;
+
+fn qemd(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_qemd"))
+        .args(args)
+        .output()
+        .expect("qemd runs")
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+/// Asserts a clean failure: exit code 1, one line on stderr naming `file` and containing
+/// `needle`, no panic, and no file in `dir` other than the inputs `keep`.
+fn assert_fails(out: &Output, file: &Path, needle: &str, dir: &Path, keep: &[&Path]) {
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "stderr: {err}");
+    assert!(!err.contains("panicked"), "panic: {err}");
+    assert_eq!(err.trim_end().lines().count(), 1, "one line: {err}");
+    assert!(err.contains(s(file)), "names the file: {err}");
+    assert!(err.contains(needle), "says `{needle}`: {err}");
+    let mut left: Vec<PathBuf> = std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| !keep.contains(&p.as_path()))
+        .collect();
+    left.sort();
+    assert!(left.is_empty(), "left behind: {left:?}");
+}
+
+/// A binary little-endian PLY with x, y, z doubles and the given triangles.
+fn ply(points: &[[f64; 3]], faces: &[[u32; 3]]) -> Vec<u8> {
+    let mut b = format!(
+        "ply\nformat binary_little_endian 1.0\nelement vertex {}\nproperty double x\n\
+         property double y\nproperty double z\n",
+        points.len()
+    );
+    if !faces.is_empty() {
+        b += &format!(
+            "element face {}\nproperty list uchar int vertex_indices\n",
+            faces.len()
+        );
+    }
+    b += "end_header\n";
+    let mut b = b.into_bytes();
+    for p in points {
+        for c in p {
+            b.extend_from_slice(&c.to_le_bytes());
+        }
+    }
+    for f in faces {
+        b.push(3);
+        for i in f {
+            b.extend_from_slice(&(*i as i32).to_le_bytes());
+        }
+    }
+    b
+}
+
+/// A wavy grid of `n × n` points with triangles.
+fn grid(n: u32) -> (Vec<[f64; 3]>, Vec<[u32; 3]>) {
+    let mut pts = Vec::new();
+    for j in 0..n {
+        for i in 0..n {
+            let (x, y) = (i as f64, j as f64);
+            pts.push([x, y, (x * 0.7).sin() * 0.3 + (y * 1.3).cos() * 0.2]);
+        }
+    }
+    let mut faces = Vec::new();
+    for j in 0..n - 1 {
+        for i in 0..n - 1 {
+            let a = j * n + i;
+            faces.push([a, a + 1, a + n]);
+            faces.push([a + 1, a + n + 1, a + n]);
+        }
+    }
+    (pts, faces)
+}
+
+struct Case {
+    dir: tempfile::TempDir,
+    input: PathBuf,
+    output: PathBuf,
+}
+
+fn case(name: &str, bytes: &[u8]) -> Case {
+    let dir = tempfile::tempdir().unwrap();
+    let input = dir.path().join(name);
+    std::fs::write(&input, bytes).unwrap();
+    let output = dir.path().join("out.ply");
+    Case { dir, input, output }
+}
+
+fn denoise_fails(c: &Case, extra: &[&str], needle: &str) {
+    let before = std::fs::read(&c.input).unwrap();
+    let mut args = vec!["denoise", s(&c.input), "-o", s(&c.output)];
+    args.extend_from_slice(extra);
+    let out = qemd(&args);
+    assert_fails(&out, &c.input, needle, c.dir.path(), &[&c.input]);
+    assert_eq!(std::fs::read(&c.input).unwrap(), before, "input unchanged");
+}
+
+#[test]
+fn truncated_file() {
+    let (p, f) = grid(10);
+    let mut b = ply(&p, &f);
+    b.truncate(b.len() - 200);
+    denoise_fails(&case("t.ply", &b), &[], "truncated");
+}
+
+#[test]
+fn header_claims_more_vertices_than_present() {
+    let (p, _) = grid(10);
+    let b = ply(&p, &[]);
+    let mut lied = b.clone();
+    let at = b
+        .windows(18)
+        .position(|w| w == b"element vertex 100")
+        .unwrap();
+    lied.splice(at..at + 18, b"element vertex 5000".iter().copied());
+    denoise_fails(&case("lie.ply", &lied), &[], "5000");
+}
+
+#[test]
+fn not_a_ply_at_all() {
+    denoise_fails(
+        &case("text.ply", b"this is not a point cloud\n"),
+        &[],
+        "text.ply",
+    );
+}
+
+#[test]
+fn empty_file() {
+    denoise_fails(&case("empty.ply", b""), &[], "empty.ply");
+}
+
+#[test]
+fn empty_cloud() {
+    denoise_fails(&case("none.ply", &ply(&[], &[])), &[], "no usable points");
+}
+
+#[test]
+fn fewer_points_than_k() {
+    let pts = [
+        [0.0, 0.0, 0.0],
+        [1.0, 0.0, 0.0],
+        [0.0, 1.0, 0.0],
+        [1.0, 1.0, 0.5],
+    ];
+    denoise_fails(
+        &case("few.ply", &ply(&pts, &[])),
+        &["--knn", "8"],
+        "fewer than k = 8",
+    );
+}
+
+#[test]
+fn all_points_identical() {
+    let pts = vec![[1.5, -2.0, 3.0]; 50];
+    denoise_fails(&case("same.ply", &ply(&pts, &[])), &[], "identical");
+}
+
+#[test]
+fn face_index_out_of_range() {
+    let (p, mut f) = grid(6);
+    f[3] = [0, 1, 999];
+    denoise_fails(&case("faces.ply", &ply(&p, &f)), &[], "999");
+}
+
+#[test]
+fn nan_in_a_mesh_is_an_error() {
+    let (mut p, f) = grid(8);
+    p[10][1] = f64::NAN;
+    denoise_fails(&case("nanmesh.ply", &ply(&p, &f)), &[], "non-finite");
+}
+
+#[test]
+fn bad_parameter_is_refused_before_any_io() {
+    let (p, f) = grid(8);
+    let c = case("ok.ply", &ply(&p, &f));
+    let out = qemd(&["denoise", s(&c.input), "-o", s(&c.output), "--eps", "3"]);
+    // A parameter error names the parameter, not a file.
+    assert_fails(
+        &out,
+        Path::new("eps"),
+        "must be in (0, 1)",
+        c.dir.path(),
+        &[&c.input],
+    );
+}
+
+#[test]
+fn output_naming_the_input_is_refused() {
+    let (p, f) = grid(8);
+    let c = case("self.ply", &ply(&p, &f));
+    let before = std::fs::read(&c.input).unwrap();
+    let out = qemd(&["denoise", s(&c.input), "-o", s(&c.input)]);
+    assert_fails(
+        &out,
+        &c.input,
+        "overwrite the input",
+        c.dir.path(),
+        &[&c.input],
+    );
+    assert_eq!(std::fs::read(&c.input).unwrap(), before);
+}
+
+#[test]
+fn nan_and_inf_points_of_a_cloud_are_dropped_with_a_warning() {
+    let (mut p, _) = grid(12);
+    p[5] = [f64::NAN, 0.0, 0.0];
+    p[77] = [0.0, f64::INFINITY, 1.0];
+    let c = case("nan.ply", &ply(&p, &[]));
+    let report = c.dir.path().join("r.json");
+    let out = qemd(&[
+        "denoise",
+        s(&c.input),
+        "-o",
+        s(&c.output),
+        "--report",
+        s(&report),
+    ]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    assert!(err.contains("warning: 2 points"), "{err}");
+    let written = Cloud::read(&c.output, None).unwrap();
+    assert_eq!(written.len(), p.len() - 2);
+    assert!(written.positions.iter().all(|q| q.is_finite()));
+    let r: serde_json::Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
+    assert_eq!(r["dropped_non_finite"], 2);
+}
+
+#[test]
+fn denoise_keeps_faces_and_reports_phases() {
+    let (p, f) = grid(20);
+    let c = case("mesh.ply", &ply(&p, &f));
+    let report = c.dir.path().join("r.json");
+    let out = qemd(&[
+        "denoise",
+        s(&c.input),
+        "-o",
+        s(&c.output),
+        "--report",
+        s(&report),
+        "--threads",
+        "2",
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let a = Cloud::read(&c.input, None).unwrap();
+    let b = Cloud::read(&c.output, None).unwrap();
+    assert_eq!(a.faces(), b.faces());
+    assert_eq!(a.len(), b.len());
+    let r: serde_json::Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
+    assert_eq!(r["mode"], "mesh");
+    let phases: Vec<&str> = r["phases"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|p| p["name"].as_str().unwrap())
+        .collect();
+    assert_eq!(phases, ["read", "neighbours", "normals", "solve", "write"]);
+    for p in r["phases"].as_array().unwrap() {
+        assert!(p["wall_s"].as_f64().unwrap() >= 0.0);
+        assert!(p["cpu_s"].as_f64().unwrap() >= 0.0);
+    }
+    assert!(r["peak_rss_bytes"].as_u64().unwrap() > 0);
+}
+
+#[test]
+fn output_bytes_do_not_depend_on_threads() {
+    let (p, f) = grid(30);
+    let c = case("t.ply", &ply(&p, &f));
+    let mut outs = Vec::new();
+    for (t, knn) in [
+        ("1", None),
+        ("2", None),
+        ("1", Some("12")),
+        ("2", Some("12")),
+    ] {
+        let o = c.dir.path().join(format!("o{t}{}.ply", knn.unwrap_or("")));
+        let mut args = vec!["denoise", s(&c.input), "-o", s(&o), "--threads", t];
+        if let Some(k) = knn {
+            args.extend_from_slice(&["--knn", k]);
+        }
+        assert!(qemd(&args).status.success());
+        outs.push(std::fs::read(&o).unwrap());
+    }
+    assert_eq!(outs[0], outs[1]);
+    assert_eq!(outs[2], outs[3]);
+    assert_ne!(outs[0], outs[2]);
+}
+
+#[test]
+fn synth_noise_eval_render_round_trip() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = |n: &str| dir.path().join(n);
+    let ok = |args: &[&str]| {
+        let o = qemd(args);
+        assert!(
+            o.status.success(),
+            "{args:?}: {}",
+            String::from_utf8_lossy(&o.stderr)
+        );
+        o
+    };
+    ok(&[
+        "synth",
+        "sphere",
+        "-o",
+        s(&d("clean.ply")),
+        "--resolution",
+        "3",
+    ]);
+    ok(&[
+        "noise",
+        s(&d("clean.ply")),
+        "-o",
+        s(&d("noisy.ply")),
+        "--level",
+        "0.4",
+        "--seed",
+        "3",
+    ]);
+    ok(&["denoise", s(&d("noisy.ply")), "-o", s(&d("den.obj"))]);
+    let out = ok(&[
+        "eval",
+        "--clean",
+        s(&d("clean.ply")),
+        "--denoised",
+        s(&d("noisy.ply")),
+        "--json",
+    ]);
+    let noisy: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let out = ok(&[
+        "eval",
+        "--clean",
+        s(&d("clean.ply")),
+        "--denoised",
+        s(&d("den.obj")),
+        "--json",
+    ]);
+    let den: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let sn = noisy["surf_std"].as_f64().unwrap();
+    let sd = den["surf_std"].as_f64().unwrap();
+    assert!((sn - 40.0).abs() < 8.0, "noise level {sn}");
+    assert!(sd < sn, "denoising lowers the surface error: {sd} vs {sn}");
+    ok(&[
+        "render",
+        s(&d("den.obj")),
+        "-o",
+        s(&d("den.png")),
+        "--size",
+        "64x48",
+    ]);
+    let png = std::fs::read(d("den.png")).unwrap();
+    assert_eq!(&png[1..4], b"PNG");
+    ok(&[
+        "synth",
+        "cube",
+        "-o",
+        s(&d("samples.ply")),
+        "--points",
+        "5000",
+        "--seed",
+        "1",
+    ]);
+    assert_eq!(Cloud::read(&d("samples.ply"), None).unwrap().len(), 5000);
+}
+
+#[test]
+fn demo_writes_its_files() {
+    let dir = tempfile::tempdir().unwrap();
+    let o = qemd(&["demo", "--out", s(dir.path())]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let text = String::from_utf8_lossy(&o.stdout);
+    assert!(text.contains("surf_std"), "{text}");
+    for f in ["noisy.ply", "denoised.ply", "noisy.png", "denoised.png"] {
+        assert!(dir.path().join(f).exists(), "{f}");
+    }
+}
