@@ -264,9 +264,8 @@ fn demo(a: DemoArgs) -> Result<()> {
         render(pos, Some(&clean.faces), &options)?.save(&a.out.join(format!("{name}.png")))?;
     }
     println!(
-        "qemd demo: CSG part, {} vertices, iso noise σ = 0.4 L, {} with default parameters",
+        "qemd demo: CSG part, {} vertices, iso noise σ = 0.4 L, QEM with default parameters",
         clean.positions.len(),
-        "QEM"
     );
     println!(
         "{:<10}{:>12}{:>12}{:>12}",
