@@ -11,6 +11,7 @@
 use glam::DVec3;
 use rayon::prelude::*;
 
+use super::frame::Frame;
 use super::normals::{pca_normals, vertex_normals};
 use super::qem::{StepCounts, count_duplicates};
 use super::{DenoiseError, NormalWeighting, Output, Params, Stats, Timer, origin_of};
@@ -156,14 +157,15 @@ pub fn points(pos: &[DVec3], origin: DVec3, params: &Params) -> Result<Output, D
         non_finite: pos.iter().filter(|p| !p.is_finite()).count() as u64,
         ..Stats::default()
     };
-    let index = KnnIndex::build(pos, origin)?;
+    let frame = Frame::new(pos, None);
+    let index = KnnIndex::build_with_ties(&frame.positions, origin, frame.ties.clone())?;
     let (lists, _) = index.knn_all(params.k())?;
     let sigma_c = mean_spacing(&index, &lists);
     drop(index);
-    stats.duplicates = count_duplicates(pos, &lists);
+    stats.duplicates = count_duplicates(&frame.positions, &lists, &frame.ties);
     timer.lap("neighbours", &mut stats);
     let r2 = 4.0 * sigma_c * sigma_c;
-    let mut cur = pos.to_vec();
+    let mut cur = frame.positions.clone();
     for pass in 0..params.iterations {
         let (normals, degenerate) = pca_normals(&cur, &lists);
         if pass == 0 {
@@ -192,7 +194,7 @@ pub fn points(pos: &[DVec3], origin: DVec3, params: &Params) -> Result<Output, D
         timer.lap("solve", &mut stats);
     }
     Ok(Output {
-        positions: cur,
+        positions: frame.restore(&cur),
         stats,
     })
 }

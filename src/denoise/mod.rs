@@ -18,6 +18,7 @@
 //! same kernels on tile-local arrays.
 
 pub mod bilateral;
+pub mod frame;
 pub mod normals;
 pub mod qem;
 mod stats;

@@ -7,6 +7,7 @@
 use glam::DVec3;
 use rayon::prelude::*;
 
+use super::frame::Frame;
 use super::normals::{pca_normals, vertex_normals};
 use super::{DenoiseError, Output, Params, Stats, Timer};
 use crate::geometry::{Quadric, Solve};
@@ -169,15 +170,15 @@ pub fn points_step(
     split(results)
 }
 
-/// Number of points whose k-NN list starts with a lower-indexed point at distance zero, i.e.
-/// duplicates of an earlier point (lists are sorted by (distance, index)).
-pub fn count_duplicates(pos: &[DVec3], lists: &Neighbourhoods) -> u64 {
+/// Number of points whose k-NN list starts with another point at distance zero with a lower tie
+/// key, i.e. duplicates of an earlier point (lists are sorted by (distance, tie key)).
+pub fn count_duplicates(pos: &[DVec3], lists: &Neighbourhoods, ties: &[u64]) -> u64 {
     (0..pos.len())
         .filter(|&i| {
-            lists
-                .get(i)
-                .first()
-                .is_some_and(|&j| (j as usize) < i && pos[j as usize] == pos[i])
+            lists.get(i).first().is_some_and(|&j| {
+                let j = j as usize;
+                ties[j] < ties[i] && pos[j] == pos[i]
+            })
         })
         .count() as u64
 }
@@ -198,13 +199,17 @@ pub fn points(pos: &[DVec3], origin: DVec3, params: &Params) -> Result<Output, D
         non_finite: pos.iter().filter(|p| !p.is_finite()).count() as u64,
         ..Stats::default()
     };
-    let index = KnnIndex::build(pos, origin)?;
+    let frame = Frame::new(pos, None);
+    let index = KnnIndex::build_with_ties(&frame.positions, origin, frame.ties.clone())?;
     let (lists, _) = index.knn_all(params.k())?;
     drop(index);
-    stats.duplicates = count_duplicates(pos, &lists);
+    stats.duplicates = count_duplicates(&frame.positions, &lists, &frame.ties);
     timer.lap("neighbours", &mut stats);
-    let positions = points_passes(pos, &lists, params, &mut stats, &mut timer);
-    Ok(Output { positions, stats })
+    let out = points_passes(&frame.positions, &lists, params, &mut stats, &mut timer);
+    Ok(Output {
+        positions: frame.restore(&out),
+        stats,
+    })
 }
 
 /// `params.iterations` QEM passes over a fixed neighbour graph.

@@ -4,15 +4,21 @@ use glam::DVec3;
 
 /// The `k` nearest finite points of `pts` to `q`, ascending by (squared distance, index).
 pub fn knn(pts: &[DVec3], q: DVec3, k: usize) -> Vec<u32> {
-    let mut all: Vec<(f64, u32)> = pts
+    let ties: Vec<u64> = (0..pts.len() as u64).collect();
+    knn_with_ties(pts, &ties, q, k)
+}
+
+/// The `k` nearest finite points of `pts` to `q`, ascending by (squared distance, `ties[i]`).
+pub fn knn_with_ties(pts: &[DVec3], ties: &[u64], q: DVec3, k: usize) -> Vec<u32> {
+    let mut all: Vec<(f64, u64, u32)> = pts
         .iter()
         .enumerate()
         .filter(|(_, p)| p.is_finite())
-        .map(|(i, &p)| (sq(p, q), i as u32))
+        .map(|(i, &p)| (sq(p, q), ties[i], i as u32))
         .collect();
     all.sort_unstable_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
     all.truncate(k);
-    all.into_iter().map(|c| c.1).collect()
+    all.into_iter().map(|c| c.2).collect()
 }
 
 /// Indices of the finite points within squared distance `r2` of `q` (inclusive), ascending.

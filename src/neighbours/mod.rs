@@ -2,11 +2,15 @@
 //!
 //! # Brief overview
 //!
-//! * [`KnnIndex`] wraps a kiddo k-d tree over positions taken relative to a fixed f64 origin. Its
-//!   answers are deterministic: candidates are ordered by (squared distance, index), and a tie at the
-//!   k-th place is resolved by a radius query, so that equal distances (duplicate points, grids)
-//!   always select the lowest indices. A tile whose points are numbered in global order therefore
-//!   picks exactly the neighbours the whole cloud would.
+//! * [`KnnIndex`] answers k-NN and radius queries over positions taken relative to a fixed f64
+//!   origin: a uniform grid for the all-points k-NN pass (see `grid.rs`), a kiddo k-d tree for
+//!   single queries and the grid's rare fallbacks. Answers are exact and deterministic:
+//!   candidates are ranked by (squared distance, tie key) with this crate's own distance formula,
+//!   where the tie key is the point's *global* index. Equal distances (duplicates, grids) always
+//!   select the lowest global indices, so a tile, whatever order it stores its points in, picks
+//!   exactly the neighbours the whole cloud would.
+//! * [`spatial_order`] is the Morton (Z-curve) permutation kernels use to lay points out so that
+//!   neighbours are close in memory.
 //! * [`Neighbourhoods`] stores the lists in CSR form; k-NN lists are the special case of equal
 //!   lengths.
 //! * [`MeshAdjacency`] holds the vertex–vertex edges of a polygon mesh and walks k-rings.
@@ -19,6 +23,7 @@
 //! ```
 
 pub mod brute;
+mod grid;
 mod mesh;
 
 pub use mesh::{MeshAdjacency, RingScratch};
@@ -101,7 +106,7 @@ impl Neighbourhoods {
 
 type Tree = ImmutableKdTree<f64, 3>;
 
-/// A k-d tree over a point set, with deterministic tie-breaking by index.
+/// Exact k-NN and radius queries over a point set, with ties broken by a global key.
 pub struct KnnIndex {
     tree: Tree,
     /// Positions relative to `origin`, as stored in the tree.
@@ -109,6 +114,8 @@ pub struct KnnIndex {
     origin: DVec3,
     /// Number of finite, indexed points (the tree holds a placeholder when this is 0).
     indexed: usize,
+    /// Tie key of each point (its global index); `None` means the local index.
+    ties: Option<Vec<u64>>,
 }
 
 impl KnnIndex {
@@ -139,7 +146,35 @@ impl KnnIndex {
             local,
             origin,
             indexed: entries.len(),
+            ties: None,
         })
+    }
+
+    /// Like [`KnnIndex::build`], with explicit tie keys (the points' global indices, which must
+    /// be distinct): among equidistant candidates the lower key wins.
+    ///
+    /// # Errors
+    /// As [`KnnIndex::build`].
+    pub fn build_with_ties(
+        points: &[DVec3],
+        origin: DVec3,
+        ties: Vec<u64>,
+    ) -> Result<KnnIndex, NeighboursError> {
+        debug_assert_eq!(points.len(), ties.len());
+        let mut idx = KnnIndex::build(points, origin)?;
+        idx.ties = Some(ties);
+        Ok(idx)
+    }
+
+    /// The tie key of point `i`.
+    #[inline]
+    pub fn tie(&self, i: usize) -> u64 {
+        self.ties.as_ref().map_or(i as u64, |t| t[i])
+    }
+
+    /// The tie keys, when they are not the local indices.
+    pub fn ties(&self) -> Option<&[u64]> {
+        self.ties.as_deref()
     }
 
     /// Number of finite points in the index.
@@ -155,9 +190,7 @@ impl KnnIndex {
     /// The squared distance between indexed points `i` and `j`, as the index measures it.
     #[inline]
     pub fn dist2(&self, i: usize, j: usize) -> f64 {
-        let (a, b) = (self.local[i], self.local[j]);
-        let d = [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
-        d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
+        grid::dist2(self.local[i], self.local[j])
     }
 
     /// The `k` nearest indexed points to indexed point `i`, itself included (it is at distance 0,
@@ -168,43 +201,49 @@ impl KnnIndex {
     }
 
     /// The `k` nearest indexed points to `q` (relative to the origin), ascending by
-    /// (distance, index), appended to `out`; returns the squared distance of the k-th. Fewer than
+    /// (distance, tie key), appended to `out`; returns the squared distance of the k-th. Fewer than
     /// `k` are returned only when fewer are indexed.
+    ///
+    /// Distances are this crate's own (`brute` computes them the same way), not kiddo's: the
+    /// tree proposes a radius, every point inside a slightly larger radius is re-measured, and
+    /// the k best by (distance, tie key) win. So the grid pass, this fallback and the oracle agree
+    /// bit for bit, ties and rounding included.
     pub fn knn_at(&self, q: [f64; 3], k: usize, out: &mut Vec<u32>) -> f64 {
-        let n = self.indexed;
-        if k == 0 || n == 0 {
+        if k == 0 || self.indexed == 0 {
             return 0.0;
         }
-        // One extra candidate tells whether the k-th place is tied.
-        let want = (k + 1).min(n);
-        let mut cand: Vec<(f64, u32)> = self
+        let want = k.min(self.indexed);
+        let proposal = self
             .tree
             .query(&q)
             .nearest_n::<SquaredEuclidean<f64>>(NonZeroUsize::new(want).expect("want ≥ 1"))
+            .execute();
+        let r = proposal.last().map_or(0.0, |c| c.distance);
+        let mut cand: Vec<(u128, u32)> = self
+            .tree
+            .query(&q)
+            .within::<SquaredEuclidean<f64>>(inflate(r))
+            .unsorted()
             .execute()
             .into_iter()
-            .map(|r| (r.distance, r.item))
+            .map(|c| {
+                (
+                    grid::rank(
+                        grid::dist2(q, self.local[c.item as usize]),
+                        self.tie(c.item as usize),
+                    ),
+                    c.item,
+                )
+            })
             .collect();
-        cand.sort_unstable_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
-        if cand.len() > k && cand[k].0 == cand[k - 1].0 {
-            // Tie at the boundary: gather every point at that distance and keep the lowest indices.
-            let r = cand[k - 1].0;
-            cand = self
-                .tree
-                .query(&q)
-                .within::<SquaredEuclidean<f64>>(r)
-                .execute()
-                .into_iter()
-                .map(|r| (r.distance, r.item))
-                .collect();
-            cand.sort_unstable_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
-        }
-        cand.truncate(k);
+        cand.sort_unstable();
+        cand.truncate(want);
         out.extend(cand.iter().map(|c| c.1));
-        cand.last().map_or(0.0, |c| c.0)
+        cand.last().map_or(0.0, |c| grid::rank_distance(c.0))
     }
 
-    /// Every indexed point within squared distance `r2` of `q` (inclusive), ascending by index.
+    /// Every indexed point within squared distance `r2` of `q` (inclusive, by this crate's own
+    /// distance), ascending by index.
     pub fn within_at(&self, q: [f64; 3], r2: f64, out: &mut Vec<u32>) {
         if self.indexed == 0 {
             return;
@@ -213,11 +252,12 @@ impl KnnIndex {
         out.extend(
             self.tree
                 .query(&q)
-                .within::<SquaredEuclidean<f64>>(r2)
+                .within::<SquaredEuclidean<f64>>(inflate(r2))
                 .unsorted()
                 .execute()
                 .into_iter()
-                .map(|r| r.item),
+                .map(|r| r.item)
+                .filter(|&j| grid::dist2(q, self.local[j as usize]) <= r2),
         );
         out[start..].sort_unstable();
     }
@@ -228,8 +268,34 @@ impl KnnIndex {
         self.local[i]
     }
 
-    /// k-NN lists of every point in `queries` (indices of indexed points), computed in parallel;
-    /// also returns the squared radius of each list. Non-finite queries get empty lists.
+    /// A grid cell size for [`KnnIndex::knn_all`]: 1.3 × the median k-th neighbour distance of
+    /// an evenly strided sample, bounded so the grid has at most 2^19 cells per axis.
+    fn cell_size(&self, k: usize) -> f64 {
+        let finite: Vec<usize> = (0..self.local.len())
+            .filter(|&i| self.local[i].iter().all(|c| c.is_finite()))
+            .collect();
+        let step = (finite.len() / 1024).max(1);
+        let mut radii: Vec<f64> = finite
+            .iter()
+            .step_by(step)
+            .map(|&i| {
+                let mut v = Vec::with_capacity(k);
+                self.knn_of(i, k, &mut v).sqrt()
+            })
+            .collect();
+        radii.sort_by(f64::total_cmp);
+        let median = radii.get(radii.len() / 2).copied().unwrap_or(0.0);
+        let mut extent = 0.0f64;
+        for &i in &finite {
+            for c in self.local[i] {
+                extent = extent.max(c.abs());
+            }
+        }
+        (1.3 * median).max(extent / (1u64 << 19) as f64)
+    }
+
+    /// k-NN lists of every indexed point (the point itself included), computed in parallel;
+    /// also returns the squared radius of each list. Non-finite points get empty lists.
     ///
     /// # Errors
     /// [`NeighboursError::ZeroK`], [`NeighboursError::TooFewPoints`] when fewer than `k` points are
@@ -245,30 +311,19 @@ impl KnnIndex {
             });
         }
         let n = self.local.len();
-        // Queries run in Morton order: consecutive queries touch the same leaves, which is worth
-        // about 2× over input order on scanner-ordered or shuffled clouds.
-        let order = morton_order(&self.local);
-        let chunk = 4096;
-        let in_order: Vec<(Vec<u32>, Vec<f64>)> = order
-            .par_chunks(chunk)
-            .map(|ids| {
-                let mut lists = Vec::with_capacity(ids.len() * k);
-                let mut radii = Vec::with_capacity(ids.len());
-                for &i in ids {
-                    let i = i as usize;
-                    if self.local[i].iter().all(|c| c.is_finite()) {
-                        let start = lists.len();
-                        let r = self.knn_of(i, k, &mut lists);
-                        debug_assert_eq!(lists.len() - start, k);
-                        radii.push(r);
-                    } else {
-                        radii.push(f64::NAN);
-                    }
-                }
-                (lists, radii)
-            })
-            .collect();
-        // Scatter back to input order: finite points own k slots, non-finite ones none.
+        let cell = self.cell_size(k);
+        let cells = if cell > 0.0 && cell.is_finite() {
+            grid::all_knn(&self.local, self.ties(), k, cell)
+        } else {
+            // Every sampled point has k coincident neighbours: let the tree answer all.
+            vec![grid::CellAnswers {
+                points: (0..n)
+                    .filter(|&i| self.local[i].iter().all(|c| c.is_finite()))
+                    .map(|i| (i as u32, f64::NAN))
+                    .collect(),
+                lists: Vec::new(),
+            }]
+        };
         let mut offsets = Vec::with_capacity(n + 1);
         offsets.push(0u32);
         let mut total = 0u32;
@@ -280,20 +335,43 @@ impl KnnIndex {
         }
         let mut indices = vec![0u32; total as usize];
         let mut radii = vec![0.0f64; n];
-        for (ids, (lists, rs)) in order.chunks(chunk).zip(&in_order) {
+        let mut fallback = Vec::new();
+        for c in &cells {
             let mut at = 0;
-            for (&i, &r) in ids.iter().zip(rs) {
-                let i = i as usize;
-                if !r.is_nan() {
-                    let o = offsets[i] as usize;
-                    indices[o..o + k].copy_from_slice(&lists[at..at + k]);
+            for &(i, r) in &c.points {
+                if r.is_nan() {
+                    fallback.push(i);
+                } else {
+                    let o = offsets[i as usize] as usize;
+                    indices[o..o + k].copy_from_slice(&c.lists[at..at + k]);
                     at += k;
-                    radii[i] = r;
+                    radii[i as usize] = r;
                 }
             }
         }
+        drop(cells);
+        // Sparse regions and outliers go to the tree, in parallel.
+        let resolved: Vec<(Vec<u32>, f64)> = fallback
+            .par_iter()
+            .map(|&i| {
+                let mut v = Vec::with_capacity(k);
+                let r = self.knn_of(i as usize, k, &mut v);
+                (v, r)
+            })
+            .collect();
+        for (&i, (list, r)) in fallback.iter().zip(resolved) {
+            let o = offsets[i as usize] as usize;
+            indices[o..o + k].copy_from_slice(&list);
+            radii[i as usize] = r;
+        }
         Ok((Neighbourhoods { offsets, indices }, radii))
     }
+}
+
+/// Widens a squared radius by a few ulps' worth so that a kiddo range query cannot miss a point
+/// this crate measures as inside (the two may round the last bit differently).
+fn inflate(r2: f64) -> f64 {
+    r2 * (1.0 + 1e-12) + f64::MIN_POSITIVE
 }
 
 /// Interleaves the low 21 bits of `v` with two zero bits between each.
@@ -307,37 +385,32 @@ fn spread3(mut v: u64) -> u64 {
     v
 }
 
-/// A permutation of the finite points' indices (non-finite ones last) sorted by 63-bit Morton code
-/// over their bounding box, ties by index.
-pub fn morton_order(local: &[[f64; 3]]) -> Vec<u32> {
-    let mut lo = [f64::INFINITY; 3];
-    let mut hi = [f64::NEG_INFINITY; 3];
-    for p in local.iter().filter(|p| p.iter().all(|c| c.is_finite())) {
-        for a in 0..3 {
-            lo[a] = lo[a].min(p[a]);
-            hi[a] = hi[a].max(p[a]);
+/// The indices of `points` in Morton (Z-curve) order over their bounding box (63-bit codes, ties by
+/// index), non-finite points last. Kernels that visit points in this order touch neighbouring
+/// data in neighbouring memory; on shuffled input that halves the time of the normal and solve
+/// passes.
+pub fn spatial_order(points: &[DVec3]) -> Vec<u32> {
+    let bounds = crate::points::Aabb::from_points(points);
+    let size = bounds.size();
+    let scale = |e: f64| {
+        if e > 0.0 {
+            ((1u64 << 21) - 1) as f64 / e
+        } else {
+            0.0
         }
-    }
-    let scale: Vec<f64> = (0..3)
-        .map(|a| {
-            let e = hi[a] - lo[a];
-            if e > 0.0 {
-                ((1u64 << 21) - 1) as f64 / e
-            } else {
-                0.0
-            }
-        })
-        .collect();
-    let mut keyed: Vec<(u64, u32)> = local
+    };
+    let s = [scale(size.x), scale(size.y), scale(size.z)];
+    let mut keyed: Vec<(u64, u32)> = points
         .par_iter()
         .enumerate()
         .map(|(i, p)| {
-            if !p.iter().all(|c| c.is_finite()) {
+            if !p.is_finite() {
                 return (u64::MAX, i as u32);
             }
-            let q = |a: usize| ((p[a] - lo[a]) * scale[a]) as u64;
+            let d = *p - bounds.min;
+            let q = |v: f64, s: f64| (v * s) as u64;
             (
-                spread3(q(0)) | spread3(q(1)) << 1 | spread3(q(2)) << 2,
+                spread3(q(d.x, s[0])) | spread3(q(d.y, s[1])) << 1 | spread3(q(d.z, s[2])) << 2,
                 i as u32,
             )
         })
@@ -401,6 +474,35 @@ mod tests {
                 prop_assert_eq!(got, brute::within(&pts, pts[i], r * r));
             }
         }
+    }
+
+    proptest! {
+        /// With explicit tie keys (a shuffled global numbering), k-NN ranks equidistant points
+        /// by key, exactly as the oracle does.
+        #[test]
+        fn knn_with_ties_matches_brute_force(seed in 0u64..10_000, n in 20usize..300,
+                                             k in 1usize..20) {
+            let pts = cloud(seed, n, true);
+            let mut ties: Vec<u64> = (0..n as u64).map(|i| i * 7919 % 100_003).collect();
+            ties.reverse();
+            let index = KnnIndex::build_with_ties(&pts, DVec3::ZERO, ties.clone()).unwrap();
+            let (nb, _) = index.knn_all(k.min(n)).unwrap();
+            for i in 0..n {
+                let want = brute::knn_with_ties(&pts, &ties, pts[i], k.min(n));
+                prop_assert_eq!(nb.get(i), &want[..], "point {}", i);
+            }
+        }
+    }
+
+    #[test]
+    fn spatial_order_is_a_permutation_with_non_finite_last() {
+        let mut pts = cloud(3, 500, false);
+        pts[17] = DVec3::NAN;
+        let order = spatial_order(&pts);
+        let mut seen = order.clone();
+        seen.sort_unstable();
+        assert_eq!(seen, (0..500).collect::<Vec<u32>>());
+        assert_eq!(*order.last().unwrap(), 17);
     }
 
     #[test]
