@@ -8,6 +8,7 @@ use std::hint::black_box;
 
 use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
 use glam::DVec3;
+use rayon::prelude::*;
 use qem_denoise::denoise::normals::pca_normals;
 use qem_denoise::denoise::qem::points_step;
 use qem_denoise::denoise::{Params, denoise, origin_of};
@@ -51,6 +52,25 @@ fn knn(c: &mut Criterion) {
     }
     g.bench_function("build", |b| {
         b.iter(|| black_box(KnnIndex::build(&pts, origin_of(&pts)).unwrap()))
+    });
+    // The crate alone, for comparison: kiddo's nearest_n(16) for every point, queries in Morton
+    // order (the grid pass in `neighbours/grid.rs` exists because this is the bottleneck).
+    let order = qem_denoise::neighbours::spatial_order(&pts);
+    let local: Vec<[f64; 3]> = pts.iter().map(|p| p.to_array()).collect();
+    let tree: kiddo::ImmutableKdTree<f64, 3> = kiddo::ImmutableKdTree::new_from_slice(&local).unwrap();
+    g.bench_function("kiddo_nearest_n_16", |b| {
+        b.iter(|| {
+            let total: usize = order
+                .par_iter()
+                .map(|&i| {
+                    tree.query(&local[i as usize])
+                        .nearest_n::<kiddo::SquaredEuclidean<f64>>(std::num::NonZeroUsize::new(16).unwrap())
+                        .execute()
+                        .len()
+                })
+                .sum();
+            black_box(total)
+        })
     });
     g.finish();
 }
