@@ -8,12 +8,12 @@ use std::hint::black_box;
 
 use criterion::{BenchmarkId, Criterion, Throughput, criterion_group, criterion_main};
 use glam::DVec3;
-use rayon::prelude::*;
 use qem_denoise::denoise::normals::pca_normals;
 use qem_denoise::denoise::qem::points_step;
 use qem_denoise::denoise::{Params, denoise, origin_of};
 use qem_denoise::geometry::{Solve, SymMat3};
 use qem_denoise::neighbours::KnnIndex;
+use rayon::prelude::*;
 
 fn cloud(n: usize) -> Vec<DVec3> {
     // A noisy wavy surface, deterministic.
@@ -57,14 +57,17 @@ fn knn(c: &mut Criterion) {
     // order (the grid pass in `neighbours/grid.rs` exists because this is the bottleneck).
     let order = qem_denoise::neighbours::spatial_order(&pts);
     let local: Vec<[f64; 3]> = pts.iter().map(|p| p.to_array()).collect();
-    let tree: kiddo::ImmutableKdTree<f64, 3> = kiddo::ImmutableKdTree::new_from_slice(&local).unwrap();
+    let tree: kiddo::ImmutableKdTree<f64, 3> =
+        kiddo::ImmutableKdTree::new_from_slice(&local).unwrap();
     g.bench_function("kiddo_nearest_n_16", |b| {
         b.iter(|| {
             let total: usize = order
                 .par_iter()
                 .map(|&i| {
                     tree.query(&local[i as usize])
-                        .nearest_n::<kiddo::SquaredEuclidean<f64>>(std::num::NonZeroUsize::new(16).unwrap())
+                        .nearest_n::<kiddo::SquaredEuclidean<f64>>(
+                            std::num::NonZeroUsize::new(16).unwrap(),
+                        )
                         .execute()
                         .len()
                 })

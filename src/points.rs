@@ -15,6 +15,7 @@
 //!  positions: [ p0 | p1 | p2 | … ]                 DVec3 (f64), decoded x/y/z
 //!  records:   [ r0 (R bytes) | r1 | r2 | … ]       original encoding, attributes untouched
 //!  start:     global index of p0 in the source
+//!  flags:     [] or one byte per point (FLAG_NOISE)
 //! ```
 
 use glam::DVec3;
@@ -282,7 +283,13 @@ pub struct PointBatch {
     pub records: Vec<u8>,
     /// Bytes per record.
     pub record_len: usize,
+    /// Per-point flags: empty, or one byte per point ([`FLAG_NOISE`] marks an outlier). Sinks
+    /// created with a noise flag write it (LAS class 7, or a `noise` property elsewhere).
+    pub flags: Vec<u8>,
 }
+
+/// [`PointBatch::flags`] bit: the point is a statistical outlier.
+pub const FLAG_NOISE: u8 = 1;
 
 impl PointBatch {
     /// An empty batch for records of `record_len` bytes with room for `capacity` points.
@@ -292,6 +299,7 @@ impl PointBatch {
             positions: Vec::with_capacity(capacity),
             records: Vec::with_capacity(capacity * record_len),
             record_len,
+            flags: Vec::new(),
         }
     }
 
@@ -310,6 +318,7 @@ impl PointBatch {
         self.start = start;
         self.positions.clear();
         self.records.clear();
+        self.flags.clear();
     }
 
     /// Record bytes of point `i`.
@@ -320,6 +329,11 @@ impl PointBatch {
     /// Mutable record bytes of point `i`.
     pub fn record_mut(&mut self, i: usize) -> &mut [u8] {
         &mut self.records[i * self.record_len..(i + 1) * self.record_len]
+    }
+
+    /// The flags of point `i` (0 when the batch carries none).
+    pub fn flag(&self, i: usize) -> u8 {
+        self.flags.get(i).copied().unwrap_or(0)
     }
 
     /// Appends one point.

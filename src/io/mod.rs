@@ -336,6 +336,14 @@ pub fn open(path: &Path, format: Option<Format>) -> Result<Box<dyn Source>, IoEr
     })
 }
 
+/// What a sink adds to its source's layout.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct SinkOptions {
+    /// Write each point's noise flag ([`crate::points::FLAG_NOISE`] in `PointBatch::flags`):
+    /// classification 7 in LAS, an extra `noise` property (0/1) in formats that can carry one.
+    pub noise_flag: bool,
+}
+
 /// Creates a sink at `path` that writes `count` points laid out like `like`. The format comes from
 /// `format`, else from the extension. When it equals the source's format, the output keeps the
 /// source's header, encoding and property types.
@@ -348,10 +356,30 @@ pub fn create(
     like: &SourceInfo,
     count: u64,
 ) -> Result<Box<dyn Sink>, IoError> {
+    create_with(path, format, like, count, &SinkOptions::default())
+}
+
+/// [`create`] with options (a noise flag).
+///
+/// # Errors
+/// As [`create`], and [`IoError::Unsupported`] for an option the format cannot carry.
+pub fn create_with(
+    path: &Path,
+    format: Option<Format>,
+    like: &SourceInfo,
+    count: u64,
+    options: &SinkOptions,
+) -> Result<Box<dyn Sink>, IoError> {
     let format = match format {
         Some(f) => f,
         None => Format::from_path(path)?,
     };
+    if options.noise_flag {
+        return Err(IoError::Unsupported {
+            path: path.to_path_buf(),
+            detail: format!("{} output cannot carry a noise flag", format.name()),
+        });
+    }
     Ok(match format {
         Format::Ply => Box::new(ply::PlySink::create(path, like, count)?),
         Format::Obj => Box::new(obj::ObjSink::create(path, like, count)?),
