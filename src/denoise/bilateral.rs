@@ -11,9 +11,8 @@
 use glam::DVec3;
 use rayon::prelude::*;
 
-use super::frame::Frame;
-use super::normals::{pca_normals, vertex_normals};
-use super::qem::{StepCounts, count_duplicates};
+use super::normals::vertex_normals;
+use super::qem::merge_step;
 use super::{DenoiseError, NormalWeighting, Output, Params, Stats, Timer, origin_of};
 use crate::geometry::ExactSum;
 use crate::neighbours::{KnnIndex, MeshAdjacency, Neighbourhoods};
@@ -70,29 +69,13 @@ fn offset(
     if sw > 0.0 { swh / sw } else { 0.0 }
 }
 
-fn finish(v: DVec3, n: DVec3, h: f64) -> (DVec3, StepCounts) {
+fn finish(v: DVec3, n: DVec3, h: f64) -> (DVec3, bool) {
     let w = n * h;
-    if h != 0.0 && w.is_finite() {
-        (
-            v + w,
-            StepCounts {
-                moved: 1,
-                singular: 0,
-                max_step: w.length(),
-            },
-        )
+    if w.is_finite() {
+        (v + w, false)
     } else {
-        (v, StepCounts::default())
+        (v, false)
     }
-}
-
-fn book(results: Vec<(DVec3, StepCounts)>, stats: &mut Stats) -> Vec<DVec3> {
-    let mut out = Vec::with_capacity(results.len());
-    for (p, c) in results {
-        c.book(stats);
-        out.push(p);
-    }
-    out
 }
 
 /// Bilateral mesh denoising, `params.iterations` passes.
@@ -109,6 +92,7 @@ pub fn mesh(pos: &[DVec3], faces: &Faces, params: &Params) -> Result<Output, Den
     let sigma_c = mean_edge_length(pos, &adjacency);
     let origin = origin_of(pos);
     let mut cur = pos.to_vec();
+    let mut stayed = vec![false; pos.len()];
     for pass in 0..params.iterations {
         let vn = vertex_normals(&cur, faces, NormalWeighting::Area);
         if pass == 0 {
@@ -119,7 +103,7 @@ pub fn mesh(pos: &[DVec3], faces: &Faces, params: &Params) -> Result<Output, Den
         let index = KnnIndex::build(&cur, origin)?;
         let r2 = 4.0 * sigma_c * sigma_c;
         timer.lap("neighbours", &mut stats);
-        let results: Vec<(DVec3, StepCounts)> = (0..cur.len())
+        let step: Vec<(DVec3, bool)> = (0..cur.len())
             .into_par_iter()
             .with_min_len(512)
             .map_init(
@@ -136,65 +120,41 @@ pub fn mesh(pos: &[DVec3], faces: &Faces, params: &Params) -> Result<Output, Den
                 },
             )
             .collect();
-        cur = book(results, &mut stats);
+        cur = merge_step(step, &mut stayed);
         timer.lap("solve", &mut stats);
     }
+    stats.book_moves(pos, &cur, &stayed, |_| true);
     Ok(Output {
         positions: cur,
         stats,
     })
 }
 
-/// Bilateral point-cloud denoising over k nearest neighbours with PCA normals. As in the QEM
-/// point operator, the k-NN graph comes from the input positions and is reused by every pass.
-///
-/// # Errors
-/// Fewer finite points than k.
-pub fn points(pos: &[DVec3], origin: DVec3, params: &Params) -> Result<Output, DenoiseError> {
-    let mut timer = Timer::start();
-    let mut stats = Stats {
-        points: pos.len() as u64,
-        non_finite: pos.iter().filter(|p| !p.is_finite()).count() as u64,
-        ..Stats::default()
-    };
-    let frame = Frame::new(pos, None);
-    let index = KnnIndex::build_with_ties(&frame.positions, origin, frame.ties.clone())?;
-    let (lists, _) = index.knn_all(params.k())?;
-    let sigma_c = mean_spacing(&index, &lists);
-    drop(index);
-    stats.duplicates = count_duplicates(&frame.positions, &lists, &frame.ties);
-    timer.lap("neighbours", &mut stats);
+/// One bilateral pass over a point cloud: each point moves along its PCA normal, weighing the
+/// k-NN neighbours (itself excluded) that lie within `2σc`.
+pub fn points_step(
+    cur: &[DVec3],
+    lists: &Neighbourhoods,
+    normals: &[DVec3],
+    sigma_c: f64,
+) -> Vec<(DVec3, bool)> {
     let r2 = 4.0 * sigma_c * sigma_c;
-    let mut cur = frame.positions.clone();
-    for pass in 0..params.iterations {
-        let (normals, degenerate) = pca_normals(&cur, &lists);
-        if pass == 0 {
-            stats.degenerate_neighbourhoods = degenerate;
-        }
-        timer.lap("normals", &mut stats);
-        let results: Vec<(DVec3, StepCounts)> = (0..cur.len())
-            .into_par_iter()
-            .with_min_len(1024)
-            .map_init(Vec::new, |buf, i| {
-                let v = cur[i];
-                if !v.is_finite() {
-                    return (v, StepCounts::default());
-                }
-                let nbrs = lists
-                    .get(i)
-                    .iter()
-                    .filter(|&&u| u as usize != i)
-                    .map(|&u| cur[u as usize])
-                    .filter(|q| (*q - v).length_squared() <= r2);
-                let h = offset(v, normals[i], nbrs, sigma_c, buf);
-                finish(v, normals[i], h)
-            })
-            .collect();
-        cur = book(results, &mut stats);
-        timer.lap("solve", &mut stats);
-    }
-    Ok(Output {
-        positions: frame.restore(&cur),
-        stats,
-    })
+    (0..cur.len())
+        .into_par_iter()
+        .with_min_len(1024)
+        .map_init(Vec::new, |buf, i| {
+            let v = cur[i];
+            if !v.is_finite() {
+                return (v, false);
+            }
+            let nbrs = lists
+                .get(i)
+                .iter()
+                .filter(|&&u| u as usize != i)
+                .map(|&u| cur[u as usize])
+                .filter(|q| (*q - v).length_squared() <= r2);
+            let h = offset(v, normals[i], nbrs, sigma_c, buf);
+            finish(v, normals[i], h)
+        })
+        .collect()
 }

@@ -14,10 +14,11 @@
 //!   references, zero-area faces, degenerate (coincident or collinear) neighbourhoods, duplicates.
 //!   Points never become NaN: a non-finite solve leaves the point where it is.
 //!
-//! The kernels are in [`qem`], [`bilateral`] and [`normals`]; the tiled out-of-core path calls the
-//! same kernels on tile-local arrays.
+//! The kernels are in [`qem`], [`bilateral`] and [`normals`]; [`cloud`] runs them on a set of
+//! points, which is what the in-memory path and every tile of the out-of-core path do.
 
 pub mod bilateral;
+pub mod cloud;
 pub mod frame;
 pub mod normals;
 pub mod qem;
@@ -254,13 +255,7 @@ pub fn denoise(
                 Method::Bilateral => bilateral::mesh(positions, f, params),
             }
         }
-        _ => {
-            let origin = origin_of(positions);
-            match params.method {
-                Method::Qem => qem::points(positions, origin, params),
-                Method::Bilateral => bilateral::points(positions, origin, params),
-            }
-        }
+        _ => cloud::run_all(positions, params),
     }
 }
 

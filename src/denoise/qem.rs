@@ -7,61 +7,19 @@
 use glam::DVec3;
 use rayon::prelude::*;
 
-use super::frame::Frame;
-use super::normals::{pca_normals, vertex_normals};
+use super::normals::vertex_normals;
 use super::{DenoiseError, Output, Params, Stats, Timer};
 use crate::geometry::{Quadric, Solve};
-use crate::neighbours::{KnnIndex, MeshAdjacency, Neighbourhoods, RingScratch};
+use crate::neighbours::{MeshAdjacency, Neighbourhoods, RingScratch};
 use crate::points::Faces;
 
-/// Outcome of one Jacobi pass.
-#[derive(Debug, Clone, Copy, Default)]
-pub struct StepCounts {
-    /// Points that moved.
-    pub moved: u64,
-    /// Points that stayed: singular quadric or non-finite solve.
-    pub singular: u64,
-    /// Largest displacement.
-    pub max_step: f64,
-}
-
-impl StepCounts {
-    fn merge(self, o: StepCounts) -> StepCounts {
-        StepCounts {
-            moved: self.moved + o.moved,
-            singular: self.singular + o.singular,
-            max_step: self.max_step.max(o.max_step),
-        }
-    }
-
-    /// Adds these counts to `stats`.
-    pub fn book(&self, stats: &mut Stats) {
-        stats.moved += self.moved;
-        stats.singular += self.singular;
-        stats.max_step = stats.max_step.max(self.max_step);
-    }
-}
-
-/// The new position of `v` from the quadric `q` (relative to `v`), and how it went.
+/// The new position of `v` from the quadric `q` (relative to `v`), and whether it stayed put
+/// because the quadric was singular (or the solve not finite).
 #[inline]
-fn apply(v: DVec3, q: &Quadric, solve: Solve) -> (DVec3, StepCounts) {
+fn apply(v: DVec3, q: &Quadric, solve: Solve) -> (DVec3, bool) {
     match solve.offset(q) {
-        Some(w) => (
-            v + w,
-            StepCounts {
-                moved: 1,
-                singular: 0,
-                max_step: w.length(),
-            },
-        ),
-        None => (
-            v,
-            StepCounts {
-                moved: 0,
-                singular: 1,
-                max_step: 0.0,
-            },
-        ),
+        Some(w) => (v + w, false),
+        None => (v, true),
     }
 }
 
@@ -85,14 +43,15 @@ pub fn summed_quadric(
 }
 
 /// One mesh pass: every vertex moves to the minimiser of the quadrics of its `rings`-ring.
+/// Returns the new positions and, per vertex, whether it stayed put on a singular quadric.
 pub fn mesh_step(
     pos: &[DVec3],
     adjacency: &MeshAdjacency,
     normals: &[DVec3],
     rings: usize,
     solve: Solve,
-) -> (Vec<DVec3>, StepCounts) {
-    let results: Vec<(DVec3, StepCounts)> = (0..pos.len())
+) -> Vec<(DVec3, bool)> {
+    (0..pos.len())
         .into_par_iter()
         .with_min_len(512)
         .map_init(
@@ -103,15 +62,7 @@ pub fn mesh_step(
                 apply(pos[v], &q, solve)
             },
         )
-        .collect();
-    split(results)
-}
-
-fn split(results: Vec<(DVec3, StepCounts)>) -> (Vec<DVec3>, StepCounts) {
-    let counts = results
-        .iter()
-        .fold(StepCounts::default(), |a, r| a.merge(r.1));
-    (results.into_iter().map(|r| r.0).collect(), counts)
+        .collect()
 }
 
 /// The QEM operator on a mesh: `params.iterations` Jacobi passes over k-rings with face-based
@@ -129,6 +80,7 @@ pub fn mesh(pos: &[DVec3], faces: &Faces, params: &Params) -> Result<Output, Den
     timer.lap("neighbours", &mut stats);
     let solve = params.solver();
     let mut cur = pos.to_vec();
+    let mut stayed = vec![false; pos.len()];
     for pass in 0..params.iterations {
         let vn = vertex_normals(&cur, faces, params.normals);
         if pass == 0 {
@@ -136,102 +88,55 @@ pub fn mesh(pos: &[DVec3], faces: &Faces, params: &Params) -> Result<Output, Den
             stats.unreferenced = vn.unreferenced;
         }
         timer.lap("normals", &mut stats);
-        let (next, counts) = mesh_step(&cur, &adjacency, &vn.normals, params.rings, solve);
-        counts.book(&mut stats);
-        cur = next;
+        let step = mesh_step(&cur, &adjacency, &vn.normals, params.rings, solve);
+        cur = merge_step(step, &mut stayed);
         timer.lap("solve", &mut stats);
     }
+    stats.book_moves(pos, &cur, &stayed, |_| true);
     Ok(Output {
         positions: cur,
         stats,
     })
 }
 
+/// Splits a pass's results into positions, or-ing its stayed flags into `stayed`.
+pub fn merge_step(step: Vec<(DVec3, bool)>, stayed: &mut [bool]) -> Vec<DVec3> {
+    step.into_iter()
+        .zip(stayed.iter_mut())
+        .map(|((p, s), acc)| {
+            *acc |= s;
+            p
+        })
+        .collect()
+}
+
 /// One point pass: every finite point moves to the minimiser of the quadrics of its k-NN list.
-/// Non-finite points keep their value and are not counted.
+/// Non-finite points keep their value.
 pub fn points_step(
     pos: &[DVec3],
     lists: &Neighbourhoods,
     normals: &[DVec3],
     solve: Solve,
-) -> (Vec<DVec3>, StepCounts) {
-    let results: Vec<(DVec3, StepCounts)> = (0..pos.len())
+) -> Vec<(DVec3, bool)> {
+    (0..pos.len())
         .into_par_iter()
         .with_min_len(1024)
         .map(|i| {
             let v = pos[i];
             if !v.is_finite() {
-                return (v, StepCounts::default());
+                return (v, false);
             }
             let q = summed_quadric(pos, normals, v, lists.get(i));
             apply(v, &q, solve)
         })
-        .collect();
-    split(results)
+        .collect()
 }
 
-/// Number of points whose k-NN list starts with another point at distance zero with a lower tie
-/// key, i.e. duplicates of an earlier point (lists are sorted by (distance, tie key)).
-pub fn count_duplicates(pos: &[DVec3], lists: &Neighbourhoods, ties: &[u64]) -> u64 {
-    (0..pos.len())
-        .filter(|&i| {
-            lists.get(i).first().is_some_and(|&j| {
-                let j = j as usize;
-                ties[j] < ties[i] && pos[j] == pos[i]
-            })
-        })
-        .count() as u64
-}
-
-/// The QEM operator on a point cloud: k nearest neighbours (the point included) relative to
-/// `origin`, PCA normals, `params.iterations` Jacobi passes.
-///
-/// The k-NN graph is built once, on the input positions, and every pass reuses it (normals and
-/// quadrics are re-evaluated on the updated positions). A fixed graph keeps the reach of `n`
-/// passes at `2n` graph hops, which is what lets the tiled path reproduce this result exactly.
-///
-/// # Errors
-/// Fewer finite points than k.
-pub fn points(pos: &[DVec3], origin: DVec3, params: &Params) -> Result<Output, DenoiseError> {
-    let mut timer = Timer::start();
-    let mut stats = Stats {
-        points: pos.len() as u64,
-        non_finite: pos.iter().filter(|p| !p.is_finite()).count() as u64,
-        ..Stats::default()
-    };
-    let frame = Frame::new(pos, None);
-    let index = KnnIndex::build_with_ties(&frame.positions, origin, frame.ties.clone())?;
-    let (lists, _) = index.knn_all(params.k())?;
-    drop(index);
-    stats.duplicates = count_duplicates(&frame.positions, &lists, &frame.ties);
-    timer.lap("neighbours", &mut stats);
-    let out = points_passes(&frame.positions, &lists, params, &mut stats, &mut timer);
-    Ok(Output {
-        positions: frame.restore(&out),
-        stats,
+/// True when point `i`'s k-NN list starts with another point at distance zero with a lower tie
+/// key, i.e. it duplicates an earlier point (lists are sorted by (distance, tie key)).
+pub fn is_duplicate(pos: &[DVec3], lists: &Neighbourhoods, ties: &[u64], i: usize) -> bool {
+    lists.get(i).first().is_some_and(|&j| {
+        let j = j as usize;
+        ties[j] < ties[i] && pos[j] == pos[i]
     })
-}
-
-/// `params.iterations` QEM passes over a fixed neighbour graph.
-pub fn points_passes(
-    pos: &[DVec3],
-    lists: &Neighbourhoods,
-    params: &Params,
-    stats: &mut Stats,
-    timer: &mut Timer,
-) -> Vec<DVec3> {
-    let solve = params.solver();
-    let mut cur = pos.to_vec();
-    for pass in 0..params.iterations {
-        let (normals, degenerate) = pca_normals(&cur, lists);
-        if pass == 0 {
-            stats.degenerate_neighbourhoods = degenerate;
-        }
-        timer.lap("normals", stats);
-        let (next, counts) = points_step(&cur, lists, &normals, solve);
-        counts.book(stats);
-        cur = next;
-        timer.lap("solve", stats);
-    }
-    cur
 }

@@ -3,6 +3,7 @@
 use std::time::Instant;
 
 use cpu_time::ProcessTime;
+use glam::DVec3;
 
 /// Wall and CPU time of one phase (summed over iterations).
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -15,14 +16,15 @@ pub struct PhaseTiming {
     pub cpu_s: f64,
 }
 
-/// What a denoising run did. Per-pass counters are summed over passes.
+/// What a denoising run did. Every counter counts points (or vertices), once each.
 #[derive(Debug, Clone, Default, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Stats {
     /// Points (or vertices) in the input.
     pub points: u64,
-    /// Point moves performed (summed over passes).
+    /// Points whose final position differs from their input position.
     pub moved: u64,
-    /// Points left in place because the summed quadric was singular or the solve not finite.
+    /// Points left in place in at least one pass because the summed quadric was singular or the
+    /// solve not finite.
     pub singular: u64,
     /// Mesh vertices that no face references (they never move).
     pub unreferenced: u64,
@@ -34,13 +36,47 @@ pub struct Stats {
     pub duplicates: u64,
     /// Non-finite points, excluded from processing.
     pub non_finite: u64,
-    /// Largest displacement of any point in any pass.
+    /// Largest distance between a point's input and output positions.
     pub max_step: f64,
     /// Timing per phase, in the order phases first ran.
     pub phases: Vec<PhaseTiming>,
 }
 
 impl Stats {
+    /// Counts moves, singular stays and the largest displacement over the points `counted` says.
+    pub fn book_moves(
+        &mut self,
+        before: &[DVec3],
+        after: &[DVec3],
+        stayed: &[bool],
+        counted: impl Fn(usize) -> bool,
+    ) {
+        for i in (0..before.len()).filter(|&i| counted(i)) {
+            let step = (after[i] - before[i]).length();
+            if step > 0.0 {
+                self.moved += 1;
+                self.max_step = self.max_step.max(step);
+            }
+            self.singular += stayed[i] as u64;
+        }
+    }
+
+    /// Adds another run's counters and phase timings (tiles of one job).
+    pub fn merge(&mut self, o: &Stats) {
+        self.points += o.points;
+        self.moved += o.moved;
+        self.singular += o.singular;
+        self.unreferenced += o.unreferenced;
+        self.zero_area_faces += o.zero_area_faces;
+        self.degenerate_neighbourhoods += o.degenerate_neighbourhoods;
+        self.duplicates += o.duplicates;
+        self.non_finite += o.non_finite;
+        self.max_step = self.max_step.max(o.max_step);
+        for p in &o.phases {
+            self.add_phase(&p.name, p.wall_s, p.cpu_s);
+        }
+    }
+
     /// Adds `wall_s` and `cpu_s` to phase `name`, creating it on first use.
     pub fn add_phase(&mut self, name: &str, wall_s: f64, cpu_s: f64) {
         if let Some(p) = self.phases.iter_mut().find(|p| p.name == name) {

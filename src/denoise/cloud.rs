@@ -1,0 +1,289 @@
+//! Point-cloud operators on a set of points: the one entry point that both the in-memory path and
+//! each tile of the out-of-core path run.
+//!
+//! # Brief overview
+//!
+//! A [`CloudRun`] is a set of finite points with their global indices (the tie keys of neighbour
+//! ranking) and, for a tile, the box that holds every point the caller has (`region`). [`run`]
+//! lays the points out in spatial order, builds the k-NN graph once, and runs the method's passes
+//! over it. It returns every point's result together with whether that result is **exact**, i.e.
+//! equal to what the whole cloud would give:
+//!
+//! ```text
+//!   region (core + halo)                       tainted at hop 0: the k-NN ball leaves the region,
+//!   ┌──────────────────────────┐               so the list may miss a point outside
+//!   │ ·  ·  · ·  ·  ·  ·  · ·  │←─ hop 0       tainted at hop h+1: some list member is tainted
+//!   │ · ┌──────────────────┐ · │←─ hop 1       at hop h (its value depends on the list)
+//!   │ · │ core (owned)     │ · │               a result is exact when the point is untainted
+//!   │ · │  all exact when  │ · │               after `reach(params)` hops
+//!   │ · │  halo ≥ reach    │ · │
+//!   │ · └──────────────────┘ · │
+//!   └──────────────────────────┘
+//! ```
+//!
+//! A method's reach is the number of graph hops its result depends on: each QEM pass reads the
+//! normals of the list members, whose PCA reads *their* lists (2 hops); a bilateral pass reads only
+//! the list of the point (1 hop). The caller grows the halo until every owned point is exact.
+//!
+//! Global scalars (the bilateral σc, the mean spacing) come from exact sums ([`ExactSum`]) that
+//! merge across tiles to the same bits as over the whole cloud.
+
+use glam::DVec3;
+
+use super::frame::Frame;
+use super::normals::pca_normals;
+use super::qem::{is_duplicate, merge_step};
+use super::{DenoiseError, Method, Params, Stats, Timer, bilateral, qem};
+use crate::geometry::ExactSum;
+use crate::neighbours::{KnnIndex, Neighbourhoods};
+use crate::points::Aabb;
+
+/// Scalars computed over the whole cloud before the operator runs.
+#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Globals {
+    /// Mean distance from a point to its nearest other point (the point-cloud L); the bilateral
+    /// σc. Zero when the method does not need it.
+    pub spacing: f64,
+}
+
+/// True when `params` need [`Globals`] (a pre-pass over the whole cloud).
+pub fn needs_globals(params: &Params) -> bool {
+    params.method == Method::Bilateral
+}
+
+/// Number of k-NN graph hops a result depends on (see the module overview).
+pub fn reach(params: &Params) -> usize {
+    match params.method {
+        Method::Qem => 2 * params.iterations,
+        Method::Bilateral => params.iterations,
+    }
+}
+
+/// The points of one run.
+#[derive(Debug, Clone, Copy)]
+pub struct CloudRun<'a> {
+    /// Finite positions.
+    pub positions: &'a [DVec3],
+    /// Global index of each point (the tie key of neighbour ranking); distinct.
+    pub ties: &'a [u64],
+    /// Origin of the relative coordinates neighbour search uses; the same for every tile.
+    pub origin: DVec3,
+    /// The box holding every point the caller has, `None` for the whole cloud.
+    pub region: Option<Aabb>,
+}
+
+/// Per-point results of a run, in the run's input order.
+#[derive(Debug, Clone)]
+pub struct CloudResult {
+    /// New positions.
+    pub positions: Vec<DVec3>,
+    /// True where the result provably equals the whole-cloud result.
+    pub exact: Vec<bool>,
+    /// Mean distance to the other members of the point's k-NN list (the outlier statistic).
+    pub knn_mean: Vec<f64>,
+    /// True where the point duplicates one with a lower global index.
+    pub duplicate: Vec<bool>,
+    /// True where the point's neighbourhood had no plane (coincident or collinear) in pass 1.
+    pub degenerate: Vec<bool>,
+    /// True where a pass left the point in place on a singular quadric.
+    pub stayed: Vec<bool>,
+    /// Phase timings.
+    pub stats: Stats,
+}
+
+impl CloudResult {
+    /// Adds the counters of the points `counted` selects to `stats` (owned points of a tile).
+    pub fn book(&self, input: &[DVec3], counted: impl Fn(usize) -> bool, stats: &mut Stats) {
+        let mut s = Stats::default();
+        for i in (0..input.len()).filter(|&i| counted(i)) {
+            s.points += 1;
+            s.duplicates += self.duplicate[i] as u64;
+            s.degenerate_neighbourhoods += self.degenerate[i] as u64;
+        }
+        s.book_moves(input, &self.positions, &self.stayed, counted);
+        stats.merge(&s);
+    }
+}
+
+/// Builds the k-NN graph of a run in spatial order; returns the frame, the lists (frame
+/// indices) and the squared radius of each list.
+fn graph(
+    run: &CloudRun,
+    k: usize,
+) -> Result<(Frame, Neighbourhoods, Vec<f64>, KnnIndex), DenoiseError> {
+    let frame = Frame::new(run.positions, Some(run.ties));
+    let index = KnnIndex::build_with_ties(&frame.positions, run.origin, frame.ties.clone())?;
+    let (lists, radii) = index.knn_all(k)?;
+    Ok((frame, lists, radii, index))
+}
+
+/// True where the k-NN ball of a point lies strictly inside `region` (so its list is complete).
+fn inside(region: &Aabb, p: DVec3, r2: f64) -> bool {
+    let lo = p - region.min;
+    let hi = region.max - p;
+    let d = lo.min(hi).min_element();
+    // A relative margin covers the rounding of the squared distances.
+    d > 0.0 && d * d > r2 * (1.0 + 1e-9) + f64::MIN_POSITIVE
+}
+
+/// Points whose result may differ from the whole-cloud result after `hops` hops: seeded by the
+/// points whose k-NN ball leaves the region, spread to every point whose list holds a tainted one.
+fn taint(
+    region: Option<&Aabb>,
+    pos: &[DVec3],
+    lists: &Neighbourhoods,
+    radii: &[f64],
+    hops: usize,
+) -> Vec<bool> {
+    let Some(region) = region else {
+        return vec![false; pos.len()];
+    };
+    let mut t: Vec<bool> = (0..pos.len())
+        .map(|i| !inside(region, pos[i], radii[i]))
+        .collect();
+    for _ in 0..hops {
+        let next: Vec<bool> = (0..pos.len())
+            .map(|i| t[i] || lists.get(i).iter().any(|&u| t[u as usize]))
+            .collect();
+        if next == t {
+            break;
+        }
+        t = next;
+    }
+    t
+}
+
+/// The partial sum behind [`Globals::spacing`] over the points `counted` selects, and for each
+/// point whether its nearest-other distance is exact (its 2-NN ball inside the region).
+///
+/// # Errors
+/// Fewer than two points.
+pub fn spacing_partial(
+    run: &CloudRun,
+    counted: impl Fn(usize) -> bool,
+) -> Result<(ExactSum, Vec<bool>), DenoiseError> {
+    let (frame, lists, radii, index) = graph(run, 2)?;
+    let exact_f = taint(run.region.as_ref(), &frame.positions, &lists, &radii, 0);
+    let mut exact = vec![false; run.positions.len()];
+    let mut sum = ExactSum::new();
+    for (j, &i) in frame.order.iter().enumerate() {
+        let i = i as usize;
+        exact[i] = !exact_f[j];
+        if counted(i)
+            && let Some(&u) = lists.get(j).iter().find(|&&u| u as usize != j)
+        {
+            sum.add(index.dist2(j, u as usize).sqrt());
+        }
+    }
+    Ok((sum, exact))
+}
+
+/// Runs the point operator of `params` on `run`.
+///
+/// # Errors
+/// Fewer points than k.
+pub fn run(
+    run: &CloudRun,
+    params: &Params,
+    globals: &Globals,
+) -> Result<CloudResult, DenoiseError> {
+    let mut timer = Timer::start();
+    let mut stats = Stats::default();
+    let k = params.k();
+    let (frame, lists, radii, index) = graph(run, k)?;
+    let n = frame.positions.len();
+    let tainted = taint(
+        run.region.as_ref(),
+        &frame.positions,
+        &lists,
+        &radii,
+        reach(params),
+    );
+    let duplicate: Vec<bool> = (0..n)
+        .map(|j| is_duplicate(&frame.positions, &lists, &frame.ties, j))
+        .collect();
+    let knn_mean: Vec<f64> = (0..n)
+        .map(|j| {
+            let others = lists.get(j).iter().filter(|&&u| u as usize != j);
+            let (sum, count) = others.fold((0.0, 0usize), |(s, c), &u| {
+                (s + index.dist2(j, u as usize).sqrt(), c + 1)
+            });
+            if count == 0 { 0.0 } else { sum / count as f64 }
+        })
+        .collect();
+    drop(index);
+    timer.lap("neighbours", &mut stats);
+
+    let solve = params.solver();
+    let mut cur = frame.positions.clone();
+    let mut stayed = vec![false; n];
+    let mut degenerate = vec![false; n];
+    for pass in 0..params.iterations {
+        let (normals, _) = pca_normals(&cur, &lists);
+        if pass == 0 {
+            for (d, (nrm, p)) in degenerate.iter_mut().zip(normals.iter().zip(&cur)) {
+                *d = *nrm == DVec3::ZERO && p.is_finite();
+            }
+        }
+        timer.lap("normals", &mut stats);
+        let step = match params.method {
+            Method::Qem => qem::points_step(&cur, &lists, &normals, solve),
+            Method::Bilateral => bilateral::points_step(&cur, &lists, &normals, globals.spacing),
+        };
+        cur = merge_step(step, &mut stayed);
+        timer.lap("solve", &mut stats);
+    }
+    let exact: Vec<bool> = tainted.iter().map(|t| !t).collect();
+    Ok(CloudResult {
+        positions: frame.restore(&cur),
+        exact: frame.restore(&exact),
+        knn_mean: frame.restore(&knn_mean),
+        duplicate: frame.restore(&duplicate),
+        degenerate: frame.restore(&degenerate),
+        stayed: frame.restore(&stayed),
+        stats,
+    })
+}
+
+/// Runs the point operator on a whole cloud in memory (global index = position in `positions`).
+/// Non-finite points are left as they are and counted.
+///
+/// # Errors
+/// Fewer finite points than k.
+pub fn run_all(positions: &[DVec3], params: &Params) -> Result<super::Output, DenoiseError> {
+    let finite: Vec<usize> = (0..positions.len())
+        .filter(|&i| positions[i].is_finite())
+        .collect();
+    let pts: Vec<DVec3> = finite.iter().map(|&i| positions[i]).collect();
+    let ties: Vec<u64> = finite.iter().map(|&i| i as u64).collect();
+    let r = CloudRun {
+        positions: &pts,
+        ties: &ties,
+        origin: super::origin_of(&pts),
+        region: None,
+    };
+    let mut timer = Timer::start();
+    let globals = if needs_globals(params) {
+        let (sum, _) = spacing_partial(&r, |_| true)?;
+        Globals {
+            spacing: sum.mean(),
+        }
+    } else {
+        Globals::default()
+    };
+    let mut stats = Stats::default();
+    timer.lap("neighbours", &mut stats);
+    let result = run(&r, params, &globals)?;
+    stats.merge(&result.stats);
+    result.book(&pts, |_| true, &mut stats);
+    stats.points = positions.len() as u64;
+    stats.non_finite = (positions.len() - pts.len()) as u64;
+    let mut out = positions.to_vec();
+    for (&i, &p) in finite.iter().zip(&result.positions) {
+        out[i] = p;
+    }
+    Ok(super::Output {
+        positions: out,
+        stats,
+    })
+}
