@@ -108,12 +108,42 @@ pub struct DenoiseArgs {
     /// Worker threads (default: all cores); the output is identical for any value.
     #[arg(long)]
     pub threads: Option<usize>,
-    /// Write a JSON report (counts, per-phase wall and CPU time, peak RSS) here.
+    /// Statistical outliers: leave them, flag them (LAS class 7 or a `noise` property), or
+    /// remove them.
+    #[arg(long, value_enum, default_value_t = OutliersArg::Off)]
+    pub outliers: OutliersArg,
+    /// Outlier threshold: mean k-NN distance above mean + ALPHA·σ (default from config: 2).
+    #[arg(long)]
+    pub outlier_alpha: Option<f64>,
+    /// Memory budget; clouds whose working set is larger run in tiles (e.g. "1 GiB").
+    #[arg(long)]
+    pub memory_budget: Option<bytesize::ByteSize>,
+    /// Directory for spill files (default: the system temporary directory).
+    #[arg(long)]
+    pub temp_dir: Option<PathBuf>,
+    /// Force tiling with about this many points per tile.
+    #[arg(long)]
+    pub tile_points: Option<u64>,
+    /// Configuration file (overrides config/default.toml; QEMD_* variables override it).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Write a JSON report (counts, tiles, per-phase wall and CPU time, peak RSS) here.
     #[arg(long)]
     pub report: Option<PathBuf>,
     /// Print nothing but errors.
     #[arg(short, long)]
     pub quiet: bool,
+}
+
+/// Outlier handling on the command line.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum OutliersArg {
+    /// Leave outliers.
+    Off,
+    /// Flag them.
+    Classify,
+    /// Drop them.
+    Remove,
 }
 
 /// Parses a `--format` value.

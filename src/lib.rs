@@ -19,6 +19,7 @@
 #![forbid(unsafe_code)]
 
 pub mod cli;
+pub mod config;
 pub mod denoise;
 pub mod eval;
 pub mod geometry;
@@ -26,3 +27,4 @@ pub mod io;
 pub mod neighbours;
 pub mod pipeline;
 pub mod points;
+pub mod tiling;

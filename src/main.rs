@@ -1,14 +1,20 @@
 //! `qemd`: the command-line front end. Parses flags, dispatches to the library, prints one-line
 //! errors and exits non-zero on failure.
 
+use std::io::IsTerminal;
 use std::process::ExitCode;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Duration;
 
 use anyhow::{Context, Result};
 use clap::Parser;
 
 use qem_denoise::cli::{
-    Cli, Command, DemoArgs, DenoiseArgs, EvalArgs, NoiseArgs, RenderArgs, SynthArgs, TableArgs,
+    Cli, Command, DemoArgs, DenoiseArgs, EvalArgs, NoiseArgs, OutliersArg, RenderArgs, SynthArgs,
+    TableArgs,
 };
+use qem_denoise::config::Config;
 use qem_denoise::denoise::{self, Params};
 use qem_denoise::eval::metrics::{Metrics, Reference};
 use qem_denoise::eval::noise::{NoiseModel, NoiseSpec, add_noise};
@@ -16,7 +22,9 @@ use qem_denoise::eval::render::{RenderOptions, View, render};
 use qem_denoise::eval::synth::Shape;
 use qem_denoise::eval::table::{TableSpec, run_table_with_progress};
 use qem_denoise::io::{self, BATCH, Cloud, Format, SourceInfo};
-use qem_denoise::pipeline::{self, Job};
+use qem_denoise::pipeline::{
+    self, BarProgress, Job, LogProgress, NoProgress, OutlierMode, Progress, RunOptions,
+};
 use qem_denoise::points::{PointBatch, ScalarType};
 
 fn main() -> ExitCode {
@@ -55,30 +63,63 @@ fn init_threads(threads: Option<usize>) -> Result<()> {
 
 fn denoise(a: DenoiseArgs) -> Result<()> {
     init_threads(a.threads)?;
+    let config = Config::load(a.config.as_deref())?;
     let job = Job {
         input: a.input.clone(),
         output: a.output.clone(),
         input_format: a.input_format,
         output_format: a.format,
         params: a.params(),
+        outliers: match a.outliers {
+            OutliersArg::Off => OutlierMode::Off,
+            OutliersArg::Classify => OutlierMode::Classify,
+            OutliersArg::Remove => OutlierMode::Remove,
+        },
+        outlier_alpha: a.outlier_alpha.unwrap_or(config.outlier_alpha),
     };
-    let report = pipeline::run(&job)?;
+    let progress: Arc<dyn Progress> = if a.quiet {
+        Arc::new(NoProgress)
+    } else if std::io::stderr().is_terminal() {
+        Arc::new(BarProgress::default())
+    } else {
+        Arc::new(LogProgress::new(Duration::from_secs(10)))
+    };
+    let cancel = Arc::new(AtomicBool::new(false));
+    {
+        // Ctrl-C and SIGTERM stop the run at the next batch or tile; the temporary directory and
+        // the unfinished output are then removed as the run unwinds.
+        let cancel = cancel.clone();
+        ctrlc::set_handler(move || cancel.store(true, Ordering::Relaxed))
+            .context("cannot install the Ctrl-C handler")?;
+    }
+    let opts = RunOptions {
+        memory_budget: a.memory_budget.unwrap_or(config.memory_budget).as_u64(),
+        temp_dir: a.temp_dir.clone().or_else(|| config.temp_dir()),
+        tile_points: a.tile_points,
+        progress: progress.clone(),
+        cancel,
+    };
+    let report = pipeline::run(&job, &opts);
+    progress.finish();
+    let report = report?;
     if let Some(path) = &a.report {
         report.write(path)?;
     }
     if !a.quiet {
         let s = &report.stats;
         eprintln!(
-            "qemd: {} → {}: {} {} points ({} moved, {} stayed singular, {} degenerate, {} duplicates, {} non-finite dropped) in {:.3} s wall / {:.3} s CPU, peak RSS {:.1} MiB",
+            "qemd: {} → {}: {} {} points in, {} out ({} moved, {} stayed singular, {} degenerate, {} duplicates, {} outliers), {} tiles, {:.3} s wall / {:.3} s CPU, peak RSS {:.1} MiB",
             report.input.display(),
             report.output.display(),
             report.mode,
             report.points_in,
+            report.points_out,
             s.moved,
             s.singular,
             s.degenerate_neighbourhoods,
             s.duplicates,
-            report.dropped_non_finite,
+            report.outliers_found,
+            report.tiles,
             report.wall_s,
             report.cpu_s,
             report.peak_rss_bytes as f64 / (1024.0 * 1024.0),

@@ -439,19 +439,35 @@ impl AtomicFile {
         &self.target
     }
 
-    /// Flushes and renames onto the target, replacing any file there.
+    /// Flushes, syncs to disk and renames onto the target, replacing any file there.
     ///
     /// # Errors
     /// Flush or rename failures.
     pub fn commit(self) -> Result<(), IoError> {
+        self.finish(true)
+    }
+
+    /// Like [`AtomicFile::commit`] without the sync: the file still appears only complete to
+    /// every reader and survives the process being killed, but not a power loss. For scratch
+    /// files (tile results), where a sync per tile would dominate the run.
+    ///
+    /// # Errors
+    /// Flush or rename failures.
+    pub fn commit_unsynced(self) -> Result<(), IoError> {
+        self.finish(false)
+    }
+
+    fn finish(self, sync: bool) -> Result<(), IoError> {
         let target = self.target;
         let tmp = self
             .tmp
             .into_inner()
             .map_err(|e| IoError::io(&target, e.into_error()))?;
-        tmp.as_file()
-            .sync_data()
-            .map_err(|e| IoError::io(&target, e))?;
+        if sync {
+            tmp.as_file()
+                .sync_data()
+                .map_err(|e| IoError::io(&target, e))?;
+        }
         fix_permissions(tmp.as_file(), &target).map_err(|e| IoError::io(&target, e))?;
         tmp.persist(&target)
             .map_err(|e| IoError::io(&target, e.error))?;

@@ -1,24 +1,45 @@
-//! Runs a denoising job end to end: source → denoise → sink, with timing and a report.
+//! Runs a denoising job end to end: source → (tiles) → sink, with progress, cancellation, a
+//! memory budget and a report.
 //!
 //! # Brief overview
 //!
-//! [`run`] reads the input through its `io::Source`, drops (and counts) non-finite points of point
-//! clouds, runs [`crate::denoise::denoise`], and writes the result through an `io::Sink` created
-//! *like* the source, so the output keeps the input's schema, property types, point order, faces
-//! and every attribute. The output appears atomically (temp file + rename); the input is only
-//! ever opened for reading, and an output path that names the input is refused.
+//! [`run`] picks the path:
 //!
-//! [`Report`] records what happened: counts, per-phase wall and CPU time, peak RSS.
+//! * **Meshes** run in memory ([`crate::denoise::denoise`]): faces need the whole vertex set.
+//! * **Point clouds that fit the memory budget** run in memory, as one region without a boundary.
+//! * **Larger point clouds** (or any cloud with `tile_points` set) run in tiles: plan, partition,
+//!   process, stitch (see [`crate::tiling`]). Both point paths run the same kernel on the same
+//!   neighbourhoods, so they write the same bytes.
+//!
+//! The output is created *like* the input (same schema, property types, header, order) and
+//! appears atomically; the input is only ever opened for reading, and an output path naming the
+//! input is refused. Non-finite points of a point cloud are dropped and counted (organized PCD
+//! clouds keep them, unprocessed). Outliers are flagged or removed as [`Outliers`] says.
+//!
+//! [`Report`] records what happened: counts, tiles, halo growths, bytes spilled, per-phase wall and
+//! CPU time, peak RSS.
+
+mod progress;
+
+pub use progress::{BarProgress, LogProgress, NoProgress, Progress};
 
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
 use cpu_time::ProcessTime;
 use glam::DVec3;
 use thiserror::Error;
 
-use crate::denoise::{self, DenoiseError, Params, PhaseTiming, Stats, Timer};
-use crate::io::{self, Cloud, Format, IoError};
+use crate::denoise::cloud::{self, CloudRun, Globals};
+use crate::denoise::{self, DenoiseError, Params, PhaseTiming, Stats, Timer, origin_of};
+use crate::geometry::ExactSum;
+use crate::io::{self, BATCH, Cloud, Extras, Format, IoError, SinkOptions, Source, SourceInfo};
+use crate::points::{FLAG_NOISE, PointBatch};
+use crate::tiling::plan::{Planner, SAMPLE};
+use crate::tiling::spill::{ResultMerge, SpillWriter, TileResult};
+use crate::tiling::{self, TilingError};
 
 /// Errors of a pipeline run; each names the file concerned.
 #[derive(Debug, Error)]
@@ -44,6 +65,25 @@ pub enum PipelineError {
         /// The path given twice.
         path: PathBuf,
     },
+    /// The temporary directory is unusable.
+    #[error("{path}: temporary directory unusable: {detail}", path = .path.display())]
+    TempDir {
+        /// The directory.
+        path: PathBuf,
+        /// Why.
+        detail: String,
+    },
+    /// The tiled path failed.
+    #[error("{path}: {source}", path = .path.display())]
+    Tiling {
+        /// Input file.
+        path: PathBuf,
+        /// What failed.
+        source: TilingError,
+    },
+    /// The run was cancelled (Ctrl-C, a job cancel).
+    #[error("cancelled")]
+    Cancelled,
     /// The report could not be written.
     #[error("{path}: cannot write report: {detail}", path = .path.display())]
     Report {
@@ -54,7 +94,21 @@ pub enum PipelineError {
     },
 }
 
-/// Where a job reads and writes.
+/// What to do with statistical outliers: points whose mean distance to their k-NN list is above
+/// `mean + alpha·σ` of that statistic over the whole cloud.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum OutlierMode {
+    /// Leave them.
+    #[default]
+    Off,
+    /// Flag them: LAS class 7, or a `noise` property.
+    Classify,
+    /// Drop them from the output.
+    Remove,
+}
+
+/// Where a job reads and writes, and what it does.
 #[derive(Debug, Clone)]
 pub struct Job {
     /// Input file.
@@ -67,6 +121,65 @@ pub struct Job {
     pub output_format: Option<Format>,
     /// Denoising parameters.
     pub params: Params,
+    /// Outlier handling.
+    pub outliers: OutlierMode,
+    /// Outlier threshold in standard deviations above the mean.
+    pub outlier_alpha: f64,
+}
+
+impl Job {
+    /// A job with default parameters and no outlier handling.
+    pub fn new(input: impl Into<PathBuf>, output: impl Into<PathBuf>) -> Job {
+        Job {
+            input: input.into(),
+            output: output.into(),
+            input_format: None,
+            output_format: None,
+            params: Params::default(),
+            outliers: OutlierMode::Off,
+            outlier_alpha: 1.0,
+        }
+    }
+}
+
+/// How a job runs (not what it computes).
+#[derive(Clone)]
+pub struct RunOptions {
+    /// Clouds whose working set fits run in memory; larger ones run in tiles sized to it.
+    pub memory_budget: u64,
+    /// Where spill files go (the system temp directory when `None`).
+    pub temp_dir: Option<PathBuf>,
+    /// Forces tiling with about this many points per tile.
+    pub tile_points: Option<u64>,
+    /// Receives phase and progress updates.
+    pub progress: Arc<dyn Progress>,
+    /// Set to stop the run at the next batch or tile.
+    pub cancel: Arc<AtomicBool>,
+}
+
+/// The default memory budget: 1 GiB.
+pub const DEFAULT_MEMORY_BUDGET: u64 = 1 << 30;
+
+impl Default for RunOptions {
+    fn default() -> Self {
+        RunOptions {
+            memory_budget: DEFAULT_MEMORY_BUDGET,
+            temp_dir: None,
+            tile_points: None,
+            progress: Arc::new(NoProgress),
+            cancel: Arc::new(AtomicBool::new(false)),
+        }
+    }
+}
+
+impl std::fmt::Debug for RunOptions {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("RunOptions")
+            .field("memory_budget", &self.memory_budget)
+            .field("temp_dir", &self.temp_dir)
+            .field("tile_points", &self.tile_points)
+            .finish()
+    }
 }
 
 /// What a run did, written as JSON by `--report`.
@@ -76,10 +189,12 @@ pub struct Report {
     pub input: PathBuf,
     /// Output file.
     pub output: PathBuf,
-    /// `mesh` or `points`.
+    /// `mesh`, `points` (in memory) or `tiled`.
     pub mode: String,
     /// The parameters used.
     pub params: Params,
+    /// Outlier handling.
+    pub outliers: OutlierMode,
     /// Points read.
     pub points_in: u64,
     /// Points written.
@@ -88,9 +203,19 @@ pub struct Report {
     pub faces: u64,
     /// Non-finite points dropped from a point cloud.
     pub dropped_non_finite: u64,
+    /// Points found to be outliers (flagged or removed).
+    pub outliers_found: u64,
+    /// Tiles (1 in memory).
+    pub tiles: u64,
+    /// Tiles that owned no point.
+    pub empty_tiles: u64,
+    /// Times a tile's halo had to grow.
+    pub halo_growths: u64,
+    /// Bytes written to spill and result files.
+    pub bytes_spilled: u64,
     /// Denoiser statistics.
     pub stats: Stats,
-    /// Wall and CPU time per phase (read, neighbours, normals, solve, write).
+    /// Wall and CPU time per phase.
     pub phases: Vec<PhaseTiming>,
     /// Total wall seconds.
     pub wall_s: f64,
@@ -141,32 +266,33 @@ fn same_file(a: &Path, b: &Path) -> bool {
     }
 }
 
-/// Removes non-finite points (and their records) from a cloud without faces; returns how many.
-fn drop_non_finite(cloud: &mut Cloud) -> u64 {
-    let rl = cloud.info.schema.record_len;
-    let before = cloud.positions.len();
-    if cloud.positions.iter().all(|p| p.is_finite()) {
-        return 0;
-    }
-    let mut positions: Vec<DVec3> = Vec::with_capacity(before);
-    let mut records = Vec::with_capacity(cloud.records.len());
-    for (i, p) in cloud.positions.iter().enumerate() {
-        if p.is_finite() {
-            positions.push(*p);
-            records.extend_from_slice(&cloud.records[i * rl..(i + 1) * rl]);
-        }
-    }
-    cloud.positions = positions;
-    cloud.records = records;
-    (before - cloud.positions.len()) as u64
+/// Working-set bytes per point of the point kernel with neighbourhood size `k` (positions in
+/// three layouts, the k-NN lists, the grid pass's sort keys, per-point results).
+pub fn bytes_per_point(k: usize, record_len: usize) -> u64 {
+    (record_len + 4 * k + 240) as u64
 }
 
-/// Runs `job` in memory and returns its report.
+/// Outlier threshold from exact sums of the statistic and its square.
+fn threshold(sum: &ExactSum, sq: &ExactSum, alpha: f64) -> f64 {
+    let n = sum.count().max(1) as f64;
+    let mean = sum.value() / n;
+    let var = (sq.value() / n - mean * mean).max(0.0);
+    mean + alpha * var.sqrt()
+}
+
+/// Runs `job`; see the module overview.
 ///
 /// # Errors
-/// Bad parameters (before any I/O), unreadable or malformed input, too few points, write failures.
-pub fn run(job: &Job) -> Result<Report, PipelineError> {
+/// Bad parameters (before any I/O), unreadable or malformed input, too few points, an unusable
+/// temporary directory, cancellation, write failures.
+pub fn run(job: &Job, opts: &RunOptions) -> Result<Report, PipelineError> {
     job.params.validate().map_err(PipelineError::Params)?;
+    if !(job.outlier_alpha.is_finite() && job.outlier_alpha >= 0.0) {
+        return Err(PipelineError::Params(DenoiseError::Param {
+            name: "outlier-alpha",
+            detail: format!("must be finite and ≥ 0, got {}", job.outlier_alpha),
+        }));
+    }
     if same_file(&job.input, &job.output) {
         return Err(PipelineError::SameFile {
             path: job.output.clone(),
@@ -174,19 +300,64 @@ pub fn run(job: &Job) -> Result<Report, PipelineError> {
     }
     let wall = Instant::now();
     let cpu = ProcessTime::now();
+    let source = io::open(&job.input, job.input_format)?;
+    let info = source.info().clone();
+    drop(source);
+    let mut report = if job.params.mesh_mode(info.has_faces()) {
+        if job.outliers != OutlierMode::Off {
+            return Err(PipelineError::Params(DenoiseError::Param {
+                name: "outliers",
+                detail: "applies to point clouds, not meshes".into(),
+            }));
+        }
+        run_mesh(job)?
+    } else {
+        let per_point = bytes_per_point(job.params.k(), info.schema.record_len);
+        let fits = info
+            .len
+            .is_some_and(|n| n.saturating_mul(per_point) <= opts.memory_budget);
+        if opts.tile_points.is_none() && fits {
+            run_points_in_memory(job, opts)?
+        } else {
+            run_tiled(job, opts, &info, per_point)?
+        }
+    };
+    report.wall_s = wall.elapsed().as_secs_f64();
+    report.cpu_s = cpu.elapsed().as_secs_f64();
+    report.peak_rss_bytes = peak_rss_bytes();
+    Ok(report)
+}
+
+fn empty_report(job: &Job, mode: &str) -> Report {
+    Report {
+        input: job.input.clone(),
+        output: job.output.clone(),
+        mode: mode.into(),
+        params: job.params.clone(),
+        outliers: job.outliers,
+        points_in: 0,
+        points_out: 0,
+        faces: 0,
+        dropped_non_finite: 0,
+        outliers_found: 0,
+        tiles: 1,
+        empty_tiles: 0,
+        halo_growths: 0,
+        bytes_spilled: 0,
+        stats: Stats::default(),
+        phases: Vec::new(),
+        wall_s: 0.0,
+        cpu_s: 0.0,
+        threads: rayon::current_num_threads(),
+        peak_rss_bytes: 0,
+    }
+}
+
+fn run_mesh(job: &Job) -> Result<Report, PipelineError> {
     let mut phases = Stats::default();
     let mut timer = Timer::start();
-
     let mut cloud = Cloud::read(&job.input, job.input_format)?;
-    let points_in = cloud.len() as u64;
-    let mesh = job.params.mesh_mode(cloud.faces().is_some());
-    let dropped = if cloud.faces().is_none() {
-        drop_non_finite(&mut cloud)
-    } else {
-        0
-    };
     timer.lap("read", &mut phases);
-
     let out = denoise::denoise(&cloud.positions, cloud.faces(), &job.params).map_err(|e| {
         PipelineError::Denoise {
             path: job.input.clone(),
@@ -194,30 +365,425 @@ pub fn run(job: &Job) -> Result<Report, PipelineError> {
         }
     })?;
     let mut stats = out.stats;
-    stats.non_finite += dropped;
-    let kernel_phases = std::mem::take(&mut stats.phases);
+    phases.merge(&Stats {
+        phases: std::mem::take(&mut stats.phases),
+        ..Stats::default()
+    });
     cloud.positions = out.positions;
     timer = Timer::start();
-
     cloud.write(&job.output, job.output_format)?;
     timer.lap("write", &mut phases);
+    let mut r = empty_report(job, "mesh");
+    r.points_in = cloud.len() as u64;
+    r.points_out = cloud.len() as u64;
+    r.faces = cloud.faces().map_or(0, |f| f.len() as u64);
+    r.stats = stats;
+    r.phases = phases.phases;
+    Ok(r)
+}
 
+/// True when `info`'s non-finite points must be written back (organized clouds) rather than
+/// dropped.
+fn keeps_non_finite(_info: &SourceInfo) -> bool {
+    false
+}
+
+/// The point-cloud rules that turn an input record plus its result into an output record.
+struct Assembler {
+    keep_non_finite: bool,
+    mode: OutlierMode,
+    threshold: f64,
+}
+
+impl Assembler {
+    /// Appends input point `i` of `batch` to `out` given its result (None for non-finite points);
+    /// returns whether it was flagged or removed as an outlier.
+    fn push(
+        &self,
+        batch: &PointBatch,
+        i: usize,
+        result: Option<(DVec3, f64)>,
+        out: &mut PointBatch,
+    ) -> bool {
+        let (p, outlier) = match result {
+            None if !self.keep_non_finite => return false,
+            None => (batch.positions[i], false),
+            Some((p, m)) => (p, self.mode != OutlierMode::Off && m > self.threshold),
+        };
+        if outlier && self.mode == OutlierMode::Remove {
+            return true;
+        }
+        out.push(p, batch.record(i));
+        if self.mode == OutlierMode::Classify {
+            out.flags.push(if outlier { FLAG_NOISE } else { 0 });
+        }
+        outlier
+    }
+}
+
+fn sink_options(job: &Job) -> SinkOptions {
+    SinkOptions {
+        noise_flag: job.outliers == OutlierMode::Classify,
+    }
+}
+
+fn cancelled(opts: &RunOptions) -> Result<(), PipelineError> {
+    if opts.cancel.load(Ordering::Relaxed) {
+        Err(PipelineError::Cancelled)
+    } else {
+        Ok(())
+    }
+}
+
+fn run_points_in_memory(job: &Job, opts: &RunOptions) -> Result<Report, PipelineError> {
+    let mut phases = Stats::default();
+    let mut timer = Timer::start();
+    opts.progress.phase("read", 0);
+    let cloud = Cloud::read(&job.input, job.input_format)?;
+    timer.lap("read", &mut phases);
+    cancelled(opts)?;
+    let finite: Vec<usize> = (0..cloud.len())
+        .filter(|&i| cloud.positions[i].is_finite())
+        .collect();
+    let pts: Vec<DVec3> = finite.iter().map(|&i| cloud.positions[i]).collect();
+    let ties: Vec<u64> = finite.iter().map(|&i| i as u64).collect();
+    let denoise_err = |e| PipelineError::Denoise {
+        path: job.input.clone(),
+        source: e,
+    };
+    if pts.is_empty() {
+        return Err(denoise_err(DenoiseError::Empty));
+    }
+    if pts.len() > 1 && pts.iter().all(|p| *p == pts[0]) {
+        return Err(denoise_err(DenoiseError::AllIdentical(pts.len())));
+    }
+    let run = CloudRun {
+        positions: &pts,
+        ties: &ties,
+        origin: origin_of(&pts),
+        region: None,
+    };
+    opts.progress.phase("denoise", 1);
+    let globals = if cloud::needs_globals(&job.params) {
+        let (sum, _) = cloud::spacing_partial(&run, |_| true).map_err(denoise_err)?;
+        Globals {
+            spacing: sum.mean(),
+        }
+    } else {
+        Globals::default()
+    };
+    let result = cloud::run(&run, &job.params, &globals).map_err(denoise_err)?;
+    let mut stats = Stats::default();
+    result.book(&pts, |_| true, &mut stats);
+    stats.points = cloud.len() as u64;
+    stats.non_finite = (cloud.len() - pts.len()) as u64;
+    phases.merge(&Stats {
+        phases: result.stats.phases.clone(),
+        ..Stats::default()
+    });
+    opts.progress.advance(1);
+    cancelled(opts)?;
+    timer = Timer::start();
+
+    let (sum, sq): (ExactSum, ExactSum) = (
+        result.knn_mean.iter().copied().collect(),
+        result.knn_mean.iter().map(|m| m * m).collect(),
+    );
+    let asm = Assembler {
+        keep_non_finite: keeps_non_finite(&cloud.info),
+        mode: job.outliers,
+        threshold: threshold(&sum, &sq, job.outlier_alpha),
+    };
+    let mut by_index: Vec<Option<(DVec3, f64)>> = vec![None; cloud.len()];
+    for (j, &i) in finite.iter().enumerate() {
+        by_index[i] = Some((result.positions[j], result.knn_mean[j]));
+    }
+    let input = PointBatch {
+        start: 0,
+        positions: cloud.positions.clone(),
+        records: cloud.records.clone(),
+        record_len: cloud.info.schema.record_len,
+        flags: Vec::new(),
+    };
+    let mut out = PointBatch::with_capacity(input.record_len, cloud.len());
+    let mut found = 0u64;
+    for (i, r) in by_index.iter().enumerate() {
+        found += asm.push(&input, i, *r, &mut out) as u64;
+    }
+    opts.progress.phase("write", out.len() as u64);
+    let mut sink = io::create_with(
+        &job.output,
+        job.output_format,
+        &cloud.info,
+        out.len() as u64,
+        &sink_options(job),
+    )?;
+    write_chunked(sink.as_mut(), &out)?;
+    sink.finish(&cloud.extras)?;
+    timer.lap("write", &mut phases);
+
+    let mut r = empty_report(job, "points");
+    r.points_in = cloud.len() as u64;
+    r.points_out = out.len() as u64;
+    r.dropped_non_finite = if asm.keep_non_finite {
+        0
+    } else {
+        stats.non_finite
+    };
+    r.outliers_found = found;
+    r.stats = stats;
+    r.phases = phases.phases;
+    Ok(r)
+}
+
+/// Writes `all` through `sink` in batches of [`BATCH`] points.
+fn write_chunked(sink: &mut dyn io::Sink, all: &PointBatch) -> Result<(), PipelineError> {
+    let rl = all.record_len;
+    let mut b = PointBatch::with_capacity(rl, BATCH);
+    for start in (0..all.len()).step_by(BATCH) {
+        let end = (start + BATCH).min(all.len());
+        b.clear(start as u64);
+        b.positions.extend_from_slice(&all.positions[start..end]);
+        b.records
+            .extend_from_slice(&all.records[start * rl..end * rl]);
+        if !all.flags.is_empty() {
+            b.flags.extend_from_slice(&all.flags[start..end]);
+        }
+        sink.write_batch(&b)?;
+    }
+    Ok(())
+}
+
+/// Streams every batch of `path` through `f`, with cancellation checks and progress.
+fn stream(
+    job: &Job,
+    opts: &RunOptions,
+    mut f: impl FnMut(&PointBatch) -> Result<(), PipelineError>,
+) -> Result<Extras, PipelineError> {
+    let mut src: Box<dyn Source> = io::open(&job.input, job.input_format)?;
+    let mut batch = PointBatch::with_capacity(src.info().schema.record_len, BATCH);
+    let mut done = 0u64;
+    while src.read_batch(&mut batch, BATCH)? > 0 {
+        cancelled(opts)?;
+        f(&batch)?;
+        done += batch.len() as u64;
+        opts.progress.advance(done);
+    }
+    Ok(src.finish()?)
+}
+
+/// A temporary directory checked to exist, be writable and have room for `need` bytes.
+fn temp_dir(opts: &RunOptions, need: u64) -> Result<tempfile::TempDir, PipelineError> {
+    let base = opts.temp_dir.clone().unwrap_or_else(std::env::temp_dir);
+    let bad = |detail: String| PipelineError::TempDir {
+        path: base.clone(),
+        detail,
+    };
+    if !base.is_dir() {
+        return Err(bad("does not exist or is not a directory".into()));
+    }
+    let dir = tempfile::Builder::new()
+        .prefix("qemd-")
+        .tempdir_in(&base)
+        .map_err(|e| bad(format!("cannot create a directory in it: {e}")))?;
+    let free = fs4::available_space(dir.path()).map_err(|e| bad(e.to_string()))?;
+    if free < need {
+        return Err(bad(format!(
+            "{:.2} GiB free, the tiled run needs about {:.2} GiB",
+            free as f64 / (1u64 << 30) as f64,
+            need as f64 / (1u64 << 30) as f64
+        )));
+    }
+    Ok(dir)
+}
+
+fn run_tiled(
+    job: &Job,
+    opts: &RunOptions,
+    info: &SourceInfo,
+    per_point: u64,
+) -> Result<Report, PipelineError> {
+    let tiling_err = |e| PipelineError::Tiling {
+        path: job.input.clone(),
+        source: e,
+    };
+    let mut phases = Stats::default();
+    let mut timer = Timer::start();
+
+    // Pass 1: plan.
+    opts.progress.phase("plan", info.len.unwrap_or(0));
+    let mut planner = Planner::new(SAMPLE);
+    stream(job, opts, |b| {
+        for (j, p) in b.positions.iter().enumerate() {
+            planner.add(b.start + j as u64, *p);
+        }
+        Ok(())
+    })?;
+    if planner.finite() == 0 {
+        return Err(PipelineError::Denoise {
+            path: job.input.clone(),
+            source: DenoiseError::Empty,
+        });
+    }
+    let b = planner.bounds();
+    if planner.finite() > 1 && b.size() == DVec3::ZERO {
+        return Err(PipelineError::Denoise {
+            path: job.input.clone(),
+            source: DenoiseError::AllIdentical(planner.finite() as usize),
+        });
+    }
+    if planner.finite() < job.params.k() as u64 {
+        return Err(PipelineError::Denoise {
+            path: job.input.clone(),
+            source: DenoiseError::Neighbours(crate::neighbours::NeighboursError::TooFewPoints {
+                points: planner.finite() as usize,
+                k: job.params.k(),
+            }),
+        });
+    }
+    let target = opts
+        .tile_points
+        .unwrap_or_else(|| (opts.memory_budget / (2 * per_point)).max(10_000));
+    let plan = planner.finish(target, job.params.k(), cloud::reach(&job.params));
+    timer.lap("plan", &mut phases);
+
+    // Pass 2: partition.
+    let need = plan.finite * (tiling::spill::SPILL_RECORD as u64 * 3 / 2)
+        + plan.finite * tiling::spill::RESULT_RECORD as u64;
+    let dir = temp_dir(opts, need)?;
+    opts.progress.phase("partition", plan.points);
+    let mut spill = SpillWriter::create(dir.path(), plan.tiles.len()).map_err(tiling_err)?;
+    let mut near = Vec::new();
+    stream(job, opts, |b| {
+        for (j, &p) in b.positions.iter().enumerate() {
+            if !p.is_finite() {
+                continue;
+            }
+            let i = b.start + j as u64;
+            let owner = plan.owner(p);
+            spill.push(owner, i, p, false).map_err(tiling_err)?;
+            near.clear();
+            plan.near(p, plan.halo, &mut near);
+            for &t in near.iter().filter(|&&t| t != owner) {
+                spill.push(t, i, p, true).map_err(tiling_err)?;
+            }
+        }
+        Ok(())
+    })?;
+    let mut bytes = spill.finish().map_err(tiling_err)?;
+    timer.lap("partition", &mut phases);
+
+    // Global scalars, when the method needs them: a pre-pass over the tiles.
+    let globals = if cloud::needs_globals(&job.params) {
+        opts.progress.phase("globals", plan.tiles.len() as u64);
+        let mut sum = ExactSum::new();
+        for t in 0..plan.tiles.len() {
+            cancelled(opts)?;
+            sum.merge(&tiling::spacing_of_tile(dir.path(), &plan, t).map_err(tiling_err)?);
+            opts.progress.advance(t as u64 + 1);
+        }
+        Globals {
+            spacing: sum.mean(),
+        }
+    } else {
+        Globals::default()
+    };
+
+    // Pass 3: tiles.
+    opts.progress.phase("tiles", plan.tiles.len() as u64);
+    let mut stats = Stats::default();
+    let (mut sum, mut sq) = (ExactSum::new(), ExactSum::new());
+    let mut growths = 0u64;
+    let mut empty = 0u64;
+    for t in 0..plan.tiles.len() {
+        cancelled(opts)?;
+        let o = tiling::process_tile(dir.path(), &plan, t, &job.params, &globals)
+            .map_err(tiling_err)?;
+        stats.merge(&o.stats);
+        sum.merge(&o.knn_mean.0);
+        sq.merge(&o.knn_mean.1);
+        growths += o.halo_growths as u64;
+        empty += (o.owned == 0) as u64;
+        bytes += o.result_bytes;
+        opts.progress.advance(t as u64 + 1);
+    }
+    stats.non_finite = plan.points - plan.finite;
+    stats.points = plan.points;
+    timer.lap("tiles", &mut phases);
+    // The kernel phases run inside the tiles; keep their totals too.
+    let kernel = std::mem::take(&mut stats.phases);
+
+    // Pass 4: stitch.
+    let asm = Assembler {
+        keep_non_finite: keeps_non_finite(info),
+        mode: job.outliers,
+        threshold: threshold(&sum, &sq, job.outlier_alpha),
+    };
+    let removed = if job.outliers == OutlierMode::Remove {
+        let mut merge = ResultMerge::open(dir.path(), plan.tiles.len()).map_err(tiling_err)?;
+        let mut n = 0u64;
+        while let Some(r) = merge.next().map_err(tiling_err)? {
+            n += (r.knn_mean > asm.threshold) as u64;
+        }
+        n
+    } else {
+        0
+    };
+    let dropped = if asm.keep_non_finite {
+        0
+    } else {
+        plan.points - plan.finite
+    };
+    let count = plan.points - dropped - removed;
+    opts.progress.phase("stitch", plan.points);
+    let mut sink = io::create_with(
+        &job.output,
+        job.output_format,
+        info,
+        count,
+        &sink_options(job),
+    )?;
+    let mut merge = ResultMerge::open(dir.path(), plan.tiles.len()).map_err(tiling_err)?;
+    let mut next: Option<TileResult> = merge.next().map_err(tiling_err)?;
+    let mut out = PointBatch::with_capacity(info.schema.record_len, BATCH);
+    let mut found = 0u64;
+    let mut written = 0u64;
+    let extras = stream(job, opts, |b| {
+        out.clear(written);
+        for i in 0..b.len() {
+            let gi = b.start + i as u64;
+            let result = match next {
+                Some(r) if r.index == gi => {
+                    next = merge.next().map_err(tiling_err)?;
+                    Some((r.p, r.knn_mean))
+                }
+                _ => None,
+            };
+            found += asm.push(b, i, result, &mut out) as u64;
+        }
+        written += out.len() as u64;
+        sink.write_batch(&out)?;
+        Ok(())
+    })?;
+    sink.finish(&extras)?;
+    timer.lap("stitch", &mut phases);
+    drop(dir);
+
+    let mut r = empty_report(job, "tiled");
+    r.points_in = plan.points;
+    r.points_out = written;
+    r.dropped_non_finite = dropped;
+    r.outliers_found = found;
+    r.tiles = plan.tiles.len() as u64;
+    r.empty_tiles = empty;
+    r.halo_growths = growths;
+    r.bytes_spilled = bytes;
+    r.stats = stats;
     let mut all = phases.phases;
-    all.splice(1..1, kernel_phases);
-    Ok(Report {
-        input: job.input.clone(),
-        output: job.output.clone(),
-        mode: if mesh { "mesh" } else { "points" }.into(),
-        params: job.params.clone(),
-        points_in,
-        points_out: cloud.len() as u64,
-        faces: cloud.faces().map_or(0, |f| f.len() as u64),
-        dropped_non_finite: dropped,
-        stats,
-        phases: all,
-        wall_s: wall.elapsed().as_secs_f64(),
-        cpu_s: cpu.elapsed().as_secs_f64(),
-        threads: rayon::current_num_threads(),
-        peak_rss_bytes: peak_rss_bytes(),
-    })
+    all.extend(kernel.into_iter().map(|p| PhaseTiming {
+        name: format!("tiles.{}", p.name),
+        ..p
+    }));
+    r.phases = all;
+    Ok(r)
 }

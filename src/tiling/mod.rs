@@ -1,0 +1,248 @@
+//! Out-of-core processing: plan, partition into tiles with a halo, process each tile exactly,
+//! merge the results back in the original order.
+//!
+//! # Brief overview
+//!
+//! 1. **Plan** ([`plan::Planner`]): one streaming pass collects bounds, counts and a
+//!    deterministic sample, and splits space into tiles by point count (a k-d split).
+//! 2. **Partition** ([`spill::SpillWriter`]): a second pass writes every finite point, with its
+//!    global index, to the spill file of the tile that owns it, and a halo copy to every other
+//!    tile whose box grown by the halo contains it.
+//! 3. **Process** ([`process_tile`]): each tile loads its points and runs
+//!    [`crate::denoise::cloud::run`] on them with the tile's region. A result is kept only when
+//!    it is provably the whole-cloud result (every k-NN ball it depends on lies inside the
+//!    region, see [`crate::denoise::cloud`]); if any owned point is not, the halo doubles and the
+//!    tile is redone from the neighbouring spill files. Finished tiles write a result file sorted
+//!    by global index, atomically: these are the checkpoints a resumed job skips.
+//! 4. **Stitch** ([`spill::ResultMerge`]): the result files merge in global-index order while
+//!    the input streams a third time, so every attribute is copied from the input untouched.
+//!
+//! With ties broken by global index, sums in a fixed order and Jacobi passes, the tiled output is
+//! bit-identical to the in-memory output for any tile size.
+
+pub mod plan;
+pub mod spill;
+
+use std::path::{Path, PathBuf};
+
+use glam::DVec3;
+use thiserror::Error;
+
+use crate::denoise::cloud::{self, CloudRun, Globals};
+use crate::denoise::{DenoiseError, Params, Stats};
+use crate::geometry::ExactSum;
+use crate::io::IoError;
+use plan::Plan;
+use spill::{TilePoint, TileResult, read_spill, write_results};
+
+/// Errors of the tiled path.
+#[derive(Debug, Error)]
+#[non_exhaustive]
+pub enum TilingError {
+    /// A temporary file could not be read or written.
+    #[error("{path}: {source}", path = .path.display())]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The OS error.
+        source: std::io::Error,
+    },
+    /// A temporary file has an impossible length (disk trouble, or a foreign file).
+    #[error("{path}: corrupt temporary file: {detail}", path = .path.display())]
+    Corrupt {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong.
+        detail: String,
+    },
+    /// A result file could not be committed.
+    #[error(transparent)]
+    Result(Box<IoError>),
+    /// The operator failed on a tile.
+    #[error("tile {tile}: {source}")]
+    Denoise {
+        /// The tile.
+        tile: usize,
+        /// The operator's error.
+        source: DenoiseError,
+    },
+    /// A tile's halo kept growing without making its results exact.
+    #[error("tile {tile}: results still not exact with a halo of {halo} (cloud too sparse?)")]
+    HaloLimit {
+        /// The tile.
+        tile: usize,
+        /// The last halo tried.
+        halo: f64,
+    },
+}
+
+/// How a tile went.
+#[derive(Debug, Clone, Default)]
+pub struct TileOutcome {
+    /// Points owned.
+    pub owned: u64,
+    /// Points loaded (owned + halo) in the final attempt.
+    pub loaded: u64,
+    /// Times the halo had to grow.
+    pub halo_growths: u32,
+    /// The halo that made every owned result exact.
+    pub halo: f64,
+    /// Bytes of the result file.
+    pub result_bytes: u64,
+    /// Counters of the owned points and phase timings.
+    pub stats: Stats,
+    /// Exact sums of the owned points' k-NN mean distance and its square (outlier statistics).
+    pub knn_mean: (ExactSum, ExactSum),
+}
+
+/// Largest halo tried, relative to the bounding-box diagonal, before giving up.
+const MAX_HALO_FRACTION: f64 = 1.0;
+
+/// Loads the points of tile `t` for `halo`: from its own spill file when `halo` is the plan's
+/// (owned points plus halo copies), otherwise the owned points of every tile near the grown box.
+fn load(dir: &Path, plan: &Plan, t: usize, halo: f64) -> Result<Vec<TilePoint>, TilingError> {
+    let mut pts = Vec::new();
+    if halo <= plan.halo {
+        read_spill(dir, t, |_, _, _| true, &mut pts)?;
+        return Ok(pts);
+    }
+    for other in 0..plan.tiles.len() {
+        let core = plan.tiles[other].core;
+        let mine = plan.tiles[t].core;
+        let touches =
+            (0..3).all(|a| core.min[a] <= mine.max[a] + halo && core.max[a] >= mine.min[a] - halo);
+        if !touches {
+            continue;
+        }
+        read_spill(
+            dir,
+            other,
+            |_, p, is_halo| !is_halo && plan.in_region(t, halo, p),
+            &mut pts,
+        )?;
+    }
+    for p in &mut pts {
+        p.owned = plan.owner(p.p) == t;
+    }
+    Ok(pts)
+}
+
+/// Runs `f` on tile `t`'s points with the smallest halo (starting at the plan's, doubling) for
+/// which `f` reports every owned point exact.
+fn with_exact_halo<T>(
+    dir: &Path,
+    plan: &Plan,
+    t: usize,
+    mut f: impl FnMut(&[TilePoint], &CloudRun) -> Result<(T, bool), TilingError>,
+) -> Result<(T, Vec<TilePoint>, f64, u32), TilingError> {
+    let mut halo = plan.halo;
+    let mut growths = 0;
+    loop {
+        let pts = load(dir, plan, t, halo)?;
+        let positions: Vec<DVec3> = pts.iter().map(|p| p.p).collect();
+        let ties: Vec<u64> = pts.iter().map(|p| p.index).collect();
+        let run = CloudRun {
+            positions: &positions,
+            ties: &ties,
+            origin: plan.origin,
+            region: Some(plan.region(t, halo)),
+        };
+        let owned = pts.iter().filter(|p| p.owned).count();
+        if owned == 0 {
+            return f(
+                &[],
+                &CloudRun {
+                    positions: &[],
+                    ties: &[],
+                    ..run
+                },
+            )
+            .map(|(v, _)| (v, pts, halo, growths));
+        }
+        let (value, exact) = f(&pts, &run)?;
+        if exact {
+            return Ok((value, pts, halo, growths));
+        }
+        growths += 1;
+        halo *= 2.0;
+        if halo > MAX_HALO_FRACTION * plan.bounds.diagonal().max(f64::MIN_POSITIVE) * 2.0 {
+            return Err(TilingError::HaloLimit { tile: t, halo });
+        }
+    }
+}
+
+/// The exact partial sum of the nearest-other-point distance over tile `t`'s owned points (the
+/// pre-pass behind [`Globals::spacing`]).
+///
+/// # Errors
+/// Spill read failures, too few points, halo limit.
+pub fn spacing_of_tile(dir: &Path, plan: &Plan, t: usize) -> Result<ExactSum, TilingError> {
+    let (sum, _, _, _) = with_exact_halo(dir, plan, t, |pts, run| {
+        if pts.is_empty() {
+            return Ok((ExactSum::new(), true));
+        }
+        if pts.len() < 2 {
+            return Ok((ExactSum::new(), false));
+        }
+        let (sum, exact) = cloud::spacing_partial(run, |i| pts[i].owned)
+            .map_err(|e| TilingError::Denoise { tile: t, source: e })?;
+        let ok = pts.iter().zip(&exact).all(|(p, e)| !p.owned || *e);
+        Ok((sum, ok))
+    })?;
+    Ok(sum)
+}
+
+/// Processes tile `t`: runs the operator with a halo large enough for every owned result to be
+/// exact and writes the owned results to the tile's result file.
+///
+/// # Errors
+/// Spill read failures, operator errors, halo limit, result write failures.
+pub fn process_tile(
+    dir: &Path,
+    plan: &Plan,
+    t: usize,
+    params: &Params,
+    globals: &Globals,
+) -> Result<TileOutcome, TilingError> {
+    let (result, pts, halo, growths) = with_exact_halo(dir, plan, t, |pts, run| {
+        if pts.is_empty() {
+            return Ok((None, true));
+        }
+        if pts.len() < params.k() {
+            // Too few points to form one neighbourhood: not exact yet, grow the halo.
+            return Ok((None, false));
+        }
+        let r = cloud::run(run, params, globals)
+            .map_err(|e| TilingError::Denoise { tile: t, source: e })?;
+        let ok = pts.iter().zip(&r.exact).all(|(p, e)| !p.owned || *e);
+        Ok((Some(r), ok))
+    })?;
+    let mut outcome = TileOutcome {
+        halo,
+        halo_growths: growths,
+        loaded: pts.len() as u64,
+        ..TileOutcome::default()
+    };
+    let mut results = Vec::new();
+    if let Some(r) = result {
+        let input: Vec<DVec3> = pts.iter().map(|p| p.p).collect();
+        r.book(&input, |i| pts[i].owned, &mut outcome.stats);
+        outcome.stats.merge(&Stats {
+            phases: r.stats.phases.clone(),
+            ..Stats::default()
+        });
+        for (i, p) in pts.iter().enumerate().filter(|(_, p)| p.owned) {
+            let m = r.knn_mean[i];
+            outcome.knn_mean.0.add(m);
+            outcome.knn_mean.1.add(m * m);
+            results.push(TileResult {
+                index: p.index,
+                p: r.positions[i],
+                knn_mean: m,
+            });
+        }
+    }
+    outcome.owned = results.len() as u64;
+    outcome.result_bytes = write_results(dir, t, &mut results)?;
+    Ok(outcome)
+}

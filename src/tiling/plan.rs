@@ -1,0 +1,422 @@
+//! Pass 1: bounds, counts, a deterministic sample, and the adaptive split into tiles.
+//!
+//! The planner sees every point once. It keeps the exact bounds of the finite points, the
+//! counts, and a *bottom-k* sample: the points whose hashed global index is among the `S`
+//! smallest, which is a uniform sample that does not depend on batch sizes or thread counts.
+//! Tiles are then chosen by count, not by area: a k-d split of the sample at medians, along the
+//! longest axis, until each leaf is expected to hold at most the target number of points.
+//!
+//! ```text
+//!   split tree (axis, value)            leaves = tiles; ownership is half-open:
+//!        x < 4.2 ?                      descend "p[axis] < value → left, else right",
+//!       /         \                     so every point has exactly one owner
+//!   y < 1.0 ?    tile 2
+//!    /     \
+//!  tile 0  tile 1
+//! ```
+
+use std::collections::BinaryHeap;
+
+use glam::DVec3;
+
+use crate::neighbours::KnnIndex;
+use crate::points::Aabb;
+
+/// Upper bound on the planning sample.
+pub const SAMPLE: usize = 1 << 18;
+
+/// A node of the split tree.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub enum Node {
+    /// Points with `p[axis] < value` go to `left`, the others to `right`.
+    Split {
+        /// 0, 1 or 2.
+        axis: usize,
+        /// The split coordinate.
+        value: f64,
+        /// Child node index.
+        left: usize,
+        /// Child node index.
+        right: usize,
+    },
+    /// A tile.
+    Leaf {
+        /// Tile index.
+        tile: usize,
+    },
+}
+
+/// One tile: the box of space it owns.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Tile {
+    /// Its index.
+    pub id: usize,
+    /// Its box (bounded by the cloud's bounds on the outside faces).
+    pub core: Aabb,
+    /// Points the sample predicts it owns.
+    pub estimate: u64,
+}
+
+/// The result of planning.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Plan {
+    /// Bounds of the finite points.
+    pub bounds: Aabb,
+    /// Origin of the relative coordinates every tile uses (`bounds.min`, as the in-memory path).
+    pub origin: DVec3,
+    /// All points read (finite or not).
+    pub points: u64,
+    /// Finite points.
+    pub finite: u64,
+    /// The split tree; node 0 is the root.
+    pub nodes: Vec<Node>,
+    /// The tiles, by index.
+    pub tiles: Vec<Tile>,
+    /// Initial halo width (in coordinate units).
+    pub halo: f64,
+}
+
+impl Plan {
+    /// The tile that owns `p` (a finite point).
+    pub fn owner(&self, p: DVec3) -> usize {
+        let mut at = 0;
+        loop {
+            match self.nodes[at] {
+                Node::Leaf { tile } => return tile,
+                Node::Split {
+                    axis,
+                    value,
+                    left,
+                    right,
+                } => at = if p[axis] < value { left } else { right },
+            }
+        }
+    }
+
+    /// Every tile whose box, grown by `halo` in every direction, contains `p`, appended to `out`.
+    pub fn near(&self, p: DVec3, halo: f64, out: &mut Vec<usize>) {
+        let mut stack = vec![0usize];
+        while let Some(at) = stack.pop() {
+            match self.nodes[at] {
+                Node::Leaf { tile } => out.push(tile),
+                Node::Split {
+                    axis,
+                    value,
+                    left,
+                    right,
+                } => {
+                    if p[axis] - halo <= value {
+                        stack.push(left);
+                    }
+                    if p[axis] + halo >= value {
+                        stack.push(right);
+                    }
+                }
+            }
+        }
+    }
+
+    /// The region of tile `t` grown by `halo`, with faces on the cloud's outer bounds pushed to
+    /// infinity (no point lies beyond them, so a k-NN ball crossing them is still complete).
+    pub fn region(&self, t: usize, halo: f64) -> Aabb {
+        let core = self.tiles[t].core;
+        let mut r = Aabb {
+            min: core.min - DVec3::splat(halo),
+            max: core.max + DVec3::splat(halo),
+        };
+        for a in 0..3 {
+            if core.min[a] <= self.bounds.min[a] {
+                r.min[a] = f64::NEG_INFINITY;
+            }
+            if core.max[a] >= self.bounds.max[a] {
+                r.max[a] = f64::INFINITY;
+            }
+        }
+        r
+    }
+
+    /// True when `p` lies within `halo` (L∞) of tile `t`'s box.
+    pub fn in_region(&self, t: usize, halo: f64, p: DVec3) -> bool {
+        let core = self.tiles[t].core;
+        (0..3).all(|a| p[a] >= core.min[a] - halo && p[a] <= core.max[a] + halo)
+    }
+}
+
+/// A 64-bit mix of the global index: the sampling key.
+fn hash(i: u64) -> u64 {
+    let mut z = i.wrapping_add(0x9e37_79b9_7f4a_7c15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+    z ^ (z >> 31)
+}
+
+/// Accumulates pass 1.
+#[derive(Debug, Clone)]
+pub struct Planner {
+    bounds: Aabb,
+    points: u64,
+    finite: u64,
+    capacity: usize,
+    /// Max-heap on the hash: the `capacity` smallest hashes seen so far.
+    sample: BinaryHeap<(u64, u64, [u64; 3])>,
+}
+
+impl Planner {
+    /// A planner keeping a sample of at most `capacity` points.
+    pub fn new(capacity: usize) -> Planner {
+        Planner {
+            bounds: Aabb::empty(),
+            points: 0,
+            finite: 0,
+            capacity: capacity.max(1),
+            sample: BinaryHeap::new(),
+        }
+    }
+
+    /// Sees the point with global index `i`.
+    pub fn add(&mut self, i: u64, p: DVec3) {
+        self.points += 1;
+        if !p.is_finite() {
+            return;
+        }
+        self.finite += 1;
+        self.bounds.grow(p);
+        let h = hash(i);
+        if self.sample.len() < self.capacity {
+            self.sample
+                .push((h, i, [p.x.to_bits(), p.y.to_bits(), p.z.to_bits()]));
+        } else if let Some(top) = self.sample.peek()
+            && h < top.0
+        {
+            self.sample.pop();
+            self.sample
+                .push((h, i, [p.x.to_bits(), p.y.to_bits(), p.z.to_bits()]));
+        }
+    }
+
+    /// All points seen.
+    pub fn points(&self) -> u64 {
+        self.points
+    }
+
+    /// Finite points seen.
+    pub fn finite(&self) -> u64 {
+        self.finite
+    }
+
+    /// Bounds of the finite points.
+    pub fn bounds(&self) -> Aabb {
+        self.bounds
+    }
+
+    /// Splits into tiles of about `target` points; `k` and `reach` size the initial halo.
+    pub fn finish(self, target: u64, k: usize, reach: usize) -> Plan {
+        let mut sample: Vec<(u64, DVec3)> = self
+            .sample
+            .into_iter()
+            .map(|(_, i, b)| {
+                (
+                    i,
+                    DVec3::new(
+                        f64::from_bits(b[0]),
+                        f64::from_bits(b[1]),
+                        f64::from_bits(b[2]),
+                    ),
+                )
+            })
+            .collect();
+        sample.sort_unstable_by_key(|s| s.0);
+        let weight = if sample.is_empty() {
+            0.0
+        } else {
+            self.finite as f64 / sample.len() as f64
+        };
+        let bounds = self.bounds;
+        let origin = if bounds.is_empty() {
+            DVec3::ZERO
+        } else {
+            bounds.min
+        };
+        let mut nodes = Vec::new();
+        let mut tiles = Vec::new();
+        let pts: Vec<DVec3> = sample.iter().map(|s| s.1).collect();
+        let mut idx: Vec<usize> = (0..pts.len()).collect();
+        split(
+            &pts,
+            &mut idx,
+            bounds,
+            weight,
+            target.max(1) as f64,
+            &mut nodes,
+            &mut tiles,
+        );
+        let halo = halo_estimate(&pts, origin, self.finite, k, reach, &bounds);
+        Plan {
+            bounds,
+            origin,
+            points: self.points,
+            finite: self.finite,
+            nodes,
+            tiles,
+            halo,
+        }
+    }
+}
+
+/// Recursive median split of the sample points `idx` inside `bx`; returns the node index.
+fn split(
+    pts: &[DVec3],
+    idx: &mut [usize],
+    bx: Aabb,
+    weight: f64,
+    target: f64,
+    nodes: &mut Vec<Node>,
+    tiles: &mut Vec<Tile>,
+) -> usize {
+    let at = nodes.len();
+    let estimate = idx.len() as f64 * weight;
+    let size = bx.size();
+    let axis = if size.x >= size.y && size.x >= size.z {
+        0
+    } else if size.y >= size.z {
+        1
+    } else {
+        2
+    };
+    // Stop at the target, and where splitting cannot separate the points: a box whose sample
+    // points all coincide (a stack of duplicates) stays one tile, whatever its count.
+    let first = idx.first().map(|&i| pts[i]);
+    let coincident = idx.iter().all(|&i| Some(pts[i]) == first);
+    if estimate <= target || idx.len() < 2 || size[axis] <= 0.0 || coincident {
+        nodes.push(Node::Leaf { tile: tiles.len() });
+        tiles.push(Tile {
+            id: tiles.len(),
+            core: bx,
+            estimate: estimate.round() as u64,
+        });
+        return at;
+    }
+    idx.sort_unstable_by(|&a, &b| pts[a][axis].total_cmp(&pts[b][axis]).then(a.cmp(&b)));
+    let mid = idx.len() / 2;
+    let mut value = pts[idx[mid]][axis];
+    if value <= bx.min[axis] || value >= bx.max[axis] {
+        // Degenerate median (many equal coordinates): split the box in half instead.
+        value = 0.5 * (bx.min[axis] + bx.max[axis]);
+    }
+    let cut = idx.partition_point(|&i| pts[i][axis] < value);
+    nodes.push(Node::Leaf { tile: usize::MAX });
+    let (lo, hi) = idx.split_at_mut(cut);
+    let mut lbox = bx;
+    lbox.max[axis] = value;
+    let mut rbox = bx;
+    rbox.min[axis] = value;
+    let left = split(pts, lo, lbox, weight, target, nodes, tiles);
+    let right = split(pts, hi, rbox, weight, target, nodes, tiles);
+    nodes[at] = Node::Split {
+        axis,
+        value,
+        left,
+        right,
+    };
+    at
+}
+
+/// Initial halo: `(reach + 1)` k-NN radii, estimated from the sample's k-NN radii scaled to the
+/// full density as for a surface (radius ∝ 1/√density), times a safety factor of 1.5. Only the
+/// speed depends on it: tiles whose halo proves too small are redone with a larger one.
+fn halo_estimate(
+    sample: &[DVec3],
+    origin: DVec3,
+    finite: u64,
+    k: usize,
+    reach: usize,
+    bounds: &Aabb,
+) -> f64 {
+    let ks = 8.min(sample.len().saturating_sub(1));
+    let fallback = bounds.diagonal() * 1e-3;
+    if ks < 2 {
+        return fallback;
+    }
+    let Ok(index) = KnnIndex::build(sample, origin) else {
+        return fallback;
+    };
+    let mut radii: Vec<f64> = (0..sample.len())
+        .step_by((sample.len() / 4096).max(1))
+        .map(|i| {
+            let mut v = Vec::new();
+            index.knn_of(i, ks + 1, &mut v).sqrt()
+        })
+        .collect();
+    radii.sort_by(f64::total_cmp);
+    let r_sample = radii[radii.len() / 2];
+    let fraction = sample.len() as f64 / finite.max(1) as f64;
+    let r_k = r_sample * (k as f64 * fraction / ks as f64).sqrt();
+    let h = (reach + 1) as f64 * r_k * 1.5;
+    if h > 0.0 && h.is_finite() {
+        h
+    } else {
+        fallback
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn planner(n: u64) -> Planner {
+        let mut p = Planner::new(4096);
+        for i in 0..n {
+            let x = (hash(i) % 1000) as f64;
+            let y = (hash(i + 7) % 1000) as f64;
+            p.add(i, DVec3::new(x, y, (x * 0.01).sin()));
+        }
+        p.add(n, DVec3::NAN);
+        p
+    }
+
+    #[test]
+    fn every_point_has_exactly_one_owner_and_halos_cover() {
+        let plan = planner(50_000).finish(5_000, 16, 2);
+        assert!(plan.tiles.len() >= 8, "{}", plan.tiles.len());
+        assert_eq!((plan.points, plan.finite), (50_001, 50_000));
+        for i in 0..2000u64 {
+            let p = DVec3::new(
+                (hash(i * 3) % 1000) as f64,
+                (hash(i * 5) % 1000) as f64,
+                0.3,
+            );
+            let t = plan.owner(p);
+            let core = plan.tiles[t].core;
+            assert!((0..3).all(|a| p[a] >= core.min[a] && p[a] <= core.max[a]));
+            let owners = plan
+                .tiles
+                .iter()
+                .filter(|tile| {
+                    (0..3).all(|a| {
+                        p[a] >= tile.core.min[a]
+                            && (p[a] < tile.core.max[a] || tile.core.max[a] >= plan.bounds.max[a])
+                    })
+                })
+                .count();
+            assert_eq!(owners, 1, "{p}");
+            let mut near = Vec::new();
+            plan.near(p, 25.0, &mut near);
+            for tile in &plan.tiles {
+                assert_eq!(near.contains(&tile.id), plan.in_region(tile.id, 25.0, p));
+            }
+        }
+    }
+
+    #[test]
+    fn sample_does_not_depend_on_order() {
+        let mut a = Planner::new(100);
+        let mut b = Planner::new(100);
+        for i in 0..10_000u64 {
+            a.add(i, DVec3::splat(i as f64));
+        }
+        for i in (0..10_000u64).rev() {
+            b.add(i, DVec3::splat(i as f64));
+        }
+        assert_eq!(a.finish(1000, 16, 2), b.finish(1000, 16, 2));
+    }
+}

@@ -1,0 +1,383 @@
+//! The on-disk formats of the tiled path: spill files (points per tile) and result files
+//! (finished tiles), both little-endian fixed-size records.
+//!
+//! ```text
+//!  spill  tile_<t>.pts   [ index|HALO<<63 : u64 | x : f64 | y : f64 | z : f64 ]   32 bytes
+//!  result tile_<t>.res   [ index : u64 | x : f64 | y : f64 | z : f64 | knn_mean : f64 ] 40 bytes,
+//!                        sorted by index, written atomically: a result file is a checkpoint
+//! ```
+
+use std::cmp::Reverse;
+use std::collections::BinaryHeap;
+use std::fs::File;
+use std::io::{BufReader, BufWriter, Read, Write};
+
+use std::path::{Path, PathBuf};
+
+use glam::DVec3;
+
+use super::TilingError;
+use crate::io::AtomicFile;
+
+/// Bytes per spill record.
+pub const SPILL_RECORD: usize = 32;
+/// Bytes per result record.
+pub const RESULT_RECORD: usize = 40;
+/// Bit 63 of a spill record's index: the point is a halo copy, owned by another tile.
+const HALO: u64 = 1 << 63;
+/// Write buffer per open spill file.
+const BUFFER: usize = 1 << 18;
+
+/// The spill file of tile `t` in `dir`.
+pub fn spill_path(dir: &Path, t: usize) -> PathBuf {
+    dir.join(format!("tile_{t:05}.pts"))
+}
+
+/// The result file of tile `t` in `dir`.
+pub fn result_path(dir: &Path, t: usize) -> PathBuf {
+    dir.join(format!("tile_{t:05}.res"))
+}
+
+fn err(path: &Path, e: std::io::Error) -> TilingError {
+    TilingError::Io {
+        path: path.to_path_buf(),
+        source: e,
+    }
+}
+
+/// Writers of the spill files of every tile (pass 2).
+///
+/// Each tile gets a memory buffer; a full buffer is appended to the tile's file, which is opened
+/// only for that write. So any number of tiles works within the open-file limit, and the buffers
+/// together stay under [`BUFFERS_TOTAL`].
+pub struct SpillWriter {
+    dir: PathBuf,
+    buffers: Vec<Vec<u8>>,
+    cap: usize,
+    bytes: u64,
+}
+
+/// Memory for all spill buffers together.
+pub const BUFFERS_TOTAL: usize = 32 << 20;
+
+impl SpillWriter {
+    /// Creates one empty spill file per tile in `dir`.
+    ///
+    /// # Errors
+    /// The files cannot be created.
+    pub fn create(dir: &Path, tiles: usize) -> Result<SpillWriter, TilingError> {
+        for t in 0..tiles {
+            let p = spill_path(dir, t);
+            File::create(&p).map_err(|e| err(&p, e))?;
+        }
+        let cap =
+            (BUFFERS_TOTAL / tiles.max(1)).clamp(4 << 10, BUFFER) / SPILL_RECORD * SPILL_RECORD;
+        Ok(SpillWriter {
+            dir: dir.to_path_buf(),
+            buffers: vec![Vec::new(); tiles],
+            cap,
+            bytes: 0,
+        })
+    }
+
+    fn flush(&mut self, t: usize) -> Result<(), TilingError> {
+        let path = spill_path(&self.dir, t);
+        let mut f = std::fs::OpenOptions::new()
+            .append(true)
+            .open(&path)
+            .map_err(|e| err(&path, e))?;
+        f.write_all(&self.buffers[t]).map_err(|e| err(&path, e))?;
+        self.buffers[t].clear();
+        Ok(())
+    }
+
+    /// Appends the point with global index `index` to tile `t`, as owned or as a halo copy.
+    ///
+    /// # Errors
+    /// Write failures.
+    pub fn push(&mut self, t: usize, index: u64, p: DVec3, halo: bool) -> Result<(), TilingError> {
+        let b = &mut self.buffers[t];
+        if b.capacity() == 0 {
+            b.reserve_exact(self.cap);
+        }
+        b.extend_from_slice(&(index | if halo { HALO } else { 0 }).to_le_bytes());
+        b.extend_from_slice(&p.x.to_le_bytes());
+        b.extend_from_slice(&p.y.to_le_bytes());
+        b.extend_from_slice(&p.z.to_le_bytes());
+        self.bytes += SPILL_RECORD as u64;
+        if b.len() >= self.cap {
+            self.flush(t)?;
+        }
+        Ok(())
+    }
+
+    /// Flushes every buffer; returns the bytes spilled.
+    ///
+    /// # Errors
+    /// Write failures (a full disk shows here).
+    pub fn finish(mut self) -> Result<u64, TilingError> {
+        for t in 0..self.buffers.len() {
+            if !self.buffers[t].is_empty() {
+                self.flush(t)?;
+            }
+        }
+        Ok(self.bytes)
+    }
+}
+
+/// One point of a tile's working set.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TilePoint {
+    /// Global index.
+    pub index: u64,
+    /// Position.
+    pub p: DVec3,
+    /// True when the tile owns the point (false for halo copies).
+    pub owned: bool,
+}
+
+/// Reads tile `t`'s spill file; `keep` filters the records by (index, position, is_halo).
+///
+/// # Errors
+/// Read failures, a file whose length is not a whole number of records.
+pub fn read_spill(
+    dir: &Path,
+    t: usize,
+    mut keep: impl FnMut(u64, DVec3, bool) -> bool,
+    out: &mut Vec<TilePoint>,
+) -> Result<(), TilingError> {
+    let path = spill_path(dir, t);
+    let f = File::open(&path).map_err(|e| err(&path, e))?;
+    let len = f.metadata().map_err(|e| err(&path, e))?.len();
+    if len % SPILL_RECORD as u64 != 0 {
+        return Err(TilingError::Corrupt {
+            path,
+            detail: format!("{len} bytes is not a whole number of {SPILL_RECORD}-byte records"),
+        });
+    }
+    let mut r = BufReader::with_capacity(BUFFER, f);
+    let mut rec = [0u8; SPILL_RECORD];
+    for _ in 0..len / SPILL_RECORD as u64 {
+        r.read_exact(&mut rec).map_err(|e| err(&path, e))?;
+        let raw = u64::from_le_bytes(rec[0..8].try_into().expect("8 bytes"));
+        let f = |o: usize| f64::from_le_bytes(rec[o..o + 8].try_into().expect("8 bytes"));
+        let p = DVec3::new(f(8), f(16), f(24));
+        let halo = raw & HALO != 0;
+        let index = raw & !HALO;
+        if keep(index, p, halo) {
+            out.push(TilePoint {
+                index,
+                p,
+                owned: !halo,
+            });
+        }
+    }
+    Ok(())
+}
+
+/// One finished point.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TileResult {
+    /// Global index.
+    pub index: u64,
+    /// New position.
+    pub p: DVec3,
+    /// Mean distance to the other members of its k-NN list.
+    pub knn_mean: f64,
+}
+
+/// Files a merge keeps open at once.
+pub const MAX_OPEN: usize = 256;
+
+fn encode(r: &TileResult) -> [u8; RESULT_RECORD] {
+    let mut rec = [0u8; RESULT_RECORD];
+    rec[0..8].copy_from_slice(&r.index.to_le_bytes());
+    rec[8..16].copy_from_slice(&r.p.x.to_le_bytes());
+    rec[16..24].copy_from_slice(&r.p.y.to_le_bytes());
+    rec[24..32].copy_from_slice(&r.p.z.to_le_bytes());
+    rec[32..40].copy_from_slice(&r.knn_mean.to_le_bytes());
+    rec
+}
+
+/// Writes tile `t`'s results (sorted here by index) atomically: the file appears only complete.
+///
+/// # Errors
+/// Write failures.
+pub fn write_results(dir: &Path, t: usize, results: &mut [TileResult]) -> Result<u64, TilingError> {
+    results.sort_unstable_by_key(|r| r.index);
+    let path = result_path(dir, t);
+    let mut f = AtomicFile::create(&path).map_err(|e| TilingError::Result(Box::new(e)))?;
+    for r in results.iter() {
+        f.write_all(&encode(r)).map_err(|e| err(&path, e))?;
+    }
+    f.commit_unsynced()
+        .map_err(|e| TilingError::Result(Box::new(e)))?;
+    Ok((results.len() * RESULT_RECORD) as u64)
+}
+
+struct Cursor {
+    path: PathBuf,
+    reader: BufReader<File>,
+    left: u64,
+}
+
+impl Cursor {
+    fn next(&mut self) -> Result<Option<TileResult>, TilingError> {
+        if self.left == 0 {
+            return Ok(None);
+        }
+        self.left -= 1;
+        let mut rec = [0u8; RESULT_RECORD];
+        self.reader
+            .read_exact(&mut rec)
+            .map_err(|e| err(&self.path, e))?;
+        let f = |o: usize| f64::from_le_bytes(rec[o..o + 8].try_into().expect("8 bytes"));
+        Ok(Some(TileResult {
+            index: u64::from_le_bytes(rec[0..8].try_into().expect("8 bytes")),
+            p: DVec3::new(f(8), f(16), f(24)),
+            knn_mean: f(32),
+        }))
+    }
+}
+
+/// Merges the result files of all tiles into one stream in global-index order.
+pub struct ResultMerge {
+    cursors: Vec<Cursor>,
+    heap: BinaryHeap<Reverse<(u64, usize)>>,
+    pending: Vec<Option<TileResult>>,
+}
+
+impl ResultMerge {
+    /// Opens the result files of tiles `0..tiles` in `dir`. Beyond [`MAX_OPEN`] tiles, groups of
+    /// result files are first merged into intermediate files in `dir`, so the merge never holds
+    /// more than [`MAX_OPEN`] files open.
+    ///
+    /// # Errors
+    /// A missing or truncated result file.
+    pub fn open(dir: &Path, tiles: usize) -> Result<ResultMerge, TilingError> {
+        let mut paths: Vec<PathBuf> = (0..tiles).map(|t| result_path(dir, t)).collect();
+        let mut level = 0;
+        while paths.len() > MAX_OPEN {
+            let mut next = Vec::new();
+            for (g, group) in paths.chunks(MAX_OPEN).enumerate() {
+                let path = dir.join(format!("merge_{level}_{g:05}.res"));
+                let mut m = ResultMerge::from_paths(group)?;
+                let mut w = BufWriter::new(File::create(&path).map_err(|e| err(&path, e))?);
+                while let Some(r) = m.next()? {
+                    w.write_all(&encode(&r)).map_err(|e| err(&path, e))?;
+                }
+                w.into_inner().map_err(|e| err(&path, e.into_error()))?;
+                next.push(path);
+            }
+            paths = next;
+            level += 1;
+        }
+        ResultMerge::from_paths(&paths)
+    }
+
+    fn from_paths(paths: &[PathBuf]) -> Result<ResultMerge, TilingError> {
+        let mut cursors = Vec::with_capacity(paths.len());
+        for path in paths {
+            let f = File::open(path).map_err(|e| err(path, e))?;
+            let len = f.metadata().map_err(|e| err(path, e))?.len();
+            if len % RESULT_RECORD as u64 != 0 {
+                return Err(TilingError::Corrupt {
+                    path: path.clone(),
+                    detail: format!("{len} bytes is not a whole number of records"),
+                });
+            }
+            cursors.push(Cursor {
+                path: path.clone(),
+                reader: BufReader::with_capacity(1 << 16, f),
+                left: len / RESULT_RECORD as u64,
+            });
+        }
+        let n = cursors.len();
+        let mut m = ResultMerge {
+            heap: BinaryHeap::with_capacity(n),
+            pending: vec![None; n],
+            cursors,
+        };
+        for t in 0..n {
+            m.refill(t)?;
+        }
+        Ok(m)
+    }
+
+    fn refill(&mut self, t: usize) -> Result<(), TilingError> {
+        if let Some(r) = self.cursors[t].next()? {
+            self.heap.push(Reverse((r.index, t)));
+            self.pending[t] = Some(r);
+        }
+        Ok(())
+    }
+
+    /// The next result in global-index order.
+    ///
+    /// # Errors
+    /// Read failures.
+    pub fn next(&mut self) -> Result<Option<TileResult>, TilingError> {
+        let Some(Reverse((_, t))) = self.heap.pop() else {
+            return Ok(None);
+        };
+        let r = self.pending[t].take();
+        self.refill(t)?;
+        Ok(r)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn spill_and_results_round_trip_and_merge_in_index_order() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut w = SpillWriter::create(dir.path(), 2).unwrap();
+        w.push(0, 5, DVec3::new(1.0, 2.0, 3.0), false).unwrap();
+        w.push(1, 5, DVec3::new(1.0, 2.0, 3.0), true).unwrap();
+        w.push(1, 9, DVec3::new(-1.0, 0.5, f64::MAX), false)
+            .unwrap();
+        assert_eq!(w.finish().unwrap(), 96);
+        let mut pts = Vec::new();
+        read_spill(dir.path(), 1, |_, _, _| true, &mut pts).unwrap();
+        assert_eq!(pts.len(), 2);
+        assert_eq!((pts[0].index, pts[0].owned), (5, false));
+        assert_eq!(pts[1].p, DVec3::new(-1.0, 0.5, f64::MAX));
+        let r = |i: u64| TileResult {
+            index: i,
+            p: DVec3::splat(i as f64),
+            knn_mean: 0.5,
+        };
+        write_results(dir.path(), 0, &mut [r(7), r(1), r(4)]).unwrap();
+        write_results(dir.path(), 1, &mut [r(3), r(0), r(9)]).unwrap();
+        let mut m = ResultMerge::open(dir.path(), 2).unwrap();
+        let mut got = Vec::new();
+        while let Some(x) = m.next().unwrap() {
+            got.push(x.index);
+        }
+        assert_eq!(got, vec![0, 1, 3, 4, 7, 9]);
+    }
+
+    #[test]
+    fn more_tiles_than_open_files_merge_in_levels() {
+        let dir = tempfile::tempdir().unwrap();
+        let tiles = MAX_OPEN * 2 + 3;
+        let mut w = SpillWriter::create(dir.path(), tiles).unwrap();
+        for t in 0..tiles {
+            w.push(t, t as u64, DVec3::ONE, false).unwrap();
+            let mut rs = [TileResult {
+                index: (tiles - 1 - t) as u64,
+                p: DVec3::ZERO,
+                knn_mean: 0.0,
+            }];
+            write_results(dir.path(), t, &mut rs).unwrap();
+        }
+        w.finish().unwrap();
+        let mut m = ResultMerge::open(dir.path(), tiles).unwrap();
+        for want in 0..tiles as u64 {
+            assert_eq!(m.next().unwrap().unwrap().index, want);
+        }
+        assert!(m.next().unwrap().is_none());
+    }
+}

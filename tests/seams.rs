@@ -1,0 +1,223 @@
+//! Exactness at tile seams: the tiled path writes the same bytes as the in-memory path for any
+//! tile size, on random, clustered, sparse and duplicate-heavy clouds, with outliers, for the
+//! iterated operator and for the bilateral filter (which needs a global pre-pass).
+
+use std::path::{Path, PathBuf};
+
+use glam::DVec3;
+use qem_denoise::denoise::{Method, Params};
+use qem_denoise::io::Cloud;
+use qem_denoise::pipeline::{Job, OutlierMode, Report, RunOptions, run};
+use qem_denoise::points::ScalarType;
+
+struct Rng(u64);
+impl Rng {
+    fn f(&mut self) -> f64 {
+        self.0 ^= self.0 << 13;
+        self.0 ^= self.0 >> 7;
+        self.0 ^= self.0 << 17;
+        (self.0 >> 11) as f64 / (1u64 << 53) as f64
+    }
+    fn g(&mut self) -> f64 {
+        let (u, v) = (self.f().max(1e-300), self.f());
+        (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()
+    }
+}
+
+/// A wavy surface with far outliers.
+fn surface(n: usize, seed: u64) -> Vec<DVec3> {
+    let mut r = Rng(seed | 1);
+    let mut v: Vec<DVec3> = (0..n)
+        .map(|_| {
+            let (x, y) = (r.f() * 10.0, r.f() * 10.0);
+            DVec3::new(x, y, (x * 0.8).sin() + 0.02 * r.g())
+        })
+        .collect();
+    for i in (0..n).step_by(97) {
+        v[i].z += 5.0 + r.f() * 5.0;
+    }
+    v
+}
+
+/// Gaussian clusters of very different density, plus sparse background points.
+fn clustered(n: usize, seed: u64) -> Vec<DVec3> {
+    let mut r = Rng(seed | 1);
+    let centres = [
+        (DVec3::new(0.0, 0.0, 0.0), 0.05),
+        (DVec3::new(3.0, 1.0, 0.5), 0.5),
+        (DVec3::new(-2.0, 4.0, 1.0), 0.2),
+    ];
+    (0..n)
+        .map(|i| {
+            if i % 50 == 0 {
+                return DVec3::new(r.f(), r.f(), r.f()) * 20.0 - DVec3::splat(10.0);
+            }
+            let (c, s) = centres[i % 3];
+            c + DVec3::new(r.g(), r.g(), r.g() * 0.3) * s
+        })
+        .collect()
+}
+
+/// A lattice where every point appears several times (ties and zero distances everywhere), and
+/// one stack of 40 copies, more than a small tile holds: the planner cannot split it and leaves
+/// empty tiles beside it.
+fn duplicates(seed: u64) -> Vec<DVec3> {
+    let mut r = Rng(seed | 1);
+    let mut v = vec![DVec3::new(7.5, 7.5, 0.05); 40];
+    for i in 0..20 {
+        for j in 0..20 {
+            let p = DVec3::new(i as f64, j as f64, ((i * j) % 3) as f64 * 0.1);
+            for _ in 0..(1 + (r.f() * 4.0) as usize) {
+                v.push(p);
+            }
+        }
+    }
+    v
+}
+
+/// Sparse, volumetric, with a huge spread in spacing.
+fn sparse(n: usize, seed: u64) -> Vec<DVec3> {
+    let mut r = Rng(seed | 1);
+    (0..n)
+        .map(|i| {
+            let s = if i % 10 == 0 { 1000.0 } else { 1.0 };
+            DVec3::new(r.f(), r.f(), r.f()) * s
+        })
+        .collect()
+}
+
+fn write(dir: &Path, name: &str, pts: Vec<DVec3>) -> PathBuf {
+    let p = dir.join(name);
+    Cloud::generated(pts, None, ScalarType::F64)
+        .write(&p, None)
+        .unwrap();
+    p
+}
+
+fn denoise(input: &Path, out: &Path, job: &Job, tile_points: Option<u64>) -> (Vec<u8>, Report) {
+    let job = Job {
+        input: input.to_path_buf(),
+        output: out.to_path_buf(),
+        ..job.clone()
+    };
+    let opts = RunOptions {
+        tile_points,
+        ..RunOptions::default()
+    };
+    let r = run(&job, &opts).unwrap();
+    (std::fs::read(out).unwrap(), r)
+}
+
+/// Runs `job` in memory and tiled at every size in `sizes`; asserts identical bytes.
+fn assert_seamless(input: &Path, job: &Job, sizes: &[u64]) -> Vec<Report> {
+    let dir = input.parent().unwrap();
+    let (want, r0) = denoise(input, &dir.join("whole.ply"), job, None);
+    assert_eq!(r0.mode, "points");
+    let mut reports = Vec::new();
+    for &s in sizes {
+        let (got, r) = denoise(input, &dir.join(format!("tiled_{s}.ply")), job, Some(s));
+        assert_eq!(r.mode, "tiled");
+        assert!(
+            got == want,
+            "{} with tiles of {s} points ({} tiles, {} halo growths) differs from the in-memory output",
+            input.display(),
+            r.tiles,
+            r.halo_growths
+        );
+        assert_eq!(r.stats.moved, r0.stats.moved);
+        assert_eq!(r.stats.duplicates, r0.stats.duplicates);
+        assert_eq!(r.outliers_found, r0.outliers_found);
+        reports.push(r);
+    }
+    reports
+}
+
+fn job(params: Params) -> Job {
+    Job {
+        params,
+        ..Job::new("", "")
+    }
+}
+
+/// Tile sizes from one tile down to a dozen points per tile (hundreds of tiles). Debug builds
+/// (the plain `cargo test`) skip the slowest sizes; CI's release run covers them all.
+const SIZES: &[u64] = if cfg!(debug_assertions) {
+    &[1_000_000, 700, 60]
+} else {
+    &[1_000_000, 3000, 700, 90, 12]
+};
+
+#[test]
+fn surface_with_outliers_any_tile_size() {
+    let d = tempfile::tempdir().unwrap();
+    let input = write(d.path(), "surface.ply", surface(4000, 1));
+    let reports = assert_seamless(&input, &job(Params::default()), SIZES);
+    assert!(reports.last().unwrap().tiles > 100);
+}
+
+#[test]
+fn clustered_cloud_with_removed_outliers() {
+    let d = tempfile::tempdir().unwrap();
+    let input = write(d.path(), "clusters.ply", clustered(3000, 2));
+    let mut j = job(Params {
+        knn: Some(10),
+        ..Params::default()
+    });
+    j.outliers = OutlierMode::Remove;
+    j.outlier_alpha = 1.0;
+    let reports = assert_seamless(&input, &j, SIZES);
+    assert!(reports[0].outliers_found > 0);
+    assert!(
+        reports.iter().any(|r| r.halo_growths > 0),
+        "some tile needed a larger halo"
+    );
+}
+
+#[test]
+fn duplicate_heavy_lattice_with_empty_tiles() {
+    let d = tempfile::tempdir().unwrap();
+    let input = write(d.path(), "dups.ply", duplicates(3));
+    let reports = assert_seamless(&input, &job(Params::default()), SIZES);
+    assert!(reports[0].stats.duplicates > 100);
+    assert!(
+        reports.iter().any(|r| r.empty_tiles > 0),
+        "{:?}",
+        reports
+            .iter()
+            .map(|r| (r.tiles, r.empty_tiles))
+            .collect::<Vec<_>>()
+    );
+}
+
+#[test]
+fn sparse_volume_iterated_operator() {
+    let d = tempfile::tempdir().unwrap();
+    let input = write(d.path(), "sparse.ply", sparse(2500, 4));
+    assert_seamless(
+        &input,
+        &job(Params {
+            iterations: 2,
+            ..Params::default()
+        }),
+        SIZES,
+    );
+}
+
+#[test]
+fn bilateral_with_its_global_pre_pass() {
+    let d = tempfile::tempdir().unwrap();
+    let input = write(d.path(), "bilateral.ply", surface(3000, 5));
+    assert_seamless(
+        &input,
+        &job(Params {
+            method: Method::Bilateral,
+            iterations: 2,
+            ..Params::default()
+        }),
+        if cfg!(debug_assertions) {
+            &[150]
+        } else {
+            &[2000, 150, 20]
+        },
+    );
+}
