@@ -21,6 +21,7 @@
 pub mod kitti;
 pub mod obj;
 pub mod off;
+pub mod pcd;
 pub mod ply;
 pub mod text;
 
@@ -144,9 +145,11 @@ pub enum Format {
     Pts,
     /// KITTI Velodyne scan: little-endian `f32` x, y, z, intensity records (`.bin`).
     Kitti,
+    /// Point Cloud Library PCD (ascii, binary, binary_compressed).
+    Pcd,
 }
 
-const KNOWN: &str = ".ply, .obj, .off, .xyz, .txt, .pts, .bin";
+const KNOWN: &str = ".ply, .obj, .off, .xyz, .txt, .pts, .bin, .pcd";
 
 impl Format {
     /// Tells the format from a file extension (case-insensitive).
@@ -167,7 +170,7 @@ impl Format {
     }
 
     /// Parses a format name or extension (`ply`, `obj`, `off`, `xyz`, `txt`, `pts`, `bin`,
-    /// `kitti`).
+    /// `kitti`, `pcd`).
     pub fn from_name(name: &str) -> Option<Format> {
         match name.to_ascii_lowercase().as_str() {
             "ply" => Some(Format::Ply),
@@ -176,6 +179,7 @@ impl Format {
             "xyz" | "txt" => Some(Format::Xyz),
             "pts" => Some(Format::Pts),
             "bin" | "kitti" => Some(Format::Kitti),
+            "pcd" => Some(Format::Pcd),
             _ => None,
         }
     }
@@ -189,6 +193,7 @@ impl Format {
             Format::Xyz => "xyz",
             Format::Pts => "pts",
             Format::Kitti => "bin",
+            Format::Pcd => "pcd",
         }
     }
 }
@@ -208,6 +213,8 @@ pub enum Meta {
     Off(off::OffMeta),
     /// XYZ and PTS header lines and separator.
     Text(text::TextMeta),
+    /// PCD header (raw lines, fields, organization, DATA kind).
+    Pcd(pcd::PcdMeta),
 }
 
 /// What a source says about its file before any point is read.
@@ -245,6 +252,14 @@ impl SourceInfo {
     pub fn has_faces(&self) -> bool {
         self.faces.is_some()
     }
+
+    /// True for an organized cloud (a PCD file with `HEIGHT` > 1): its points form a
+    /// `WIDTH` × `HEIGHT` image and invalid points are NaN placeholders. A caller must keep such
+    /// points in place (leave them unprocessed) rather than drop them; sinks write NaN
+    /// coordinates as given, so an unchanged point count keeps the image layout.
+    pub fn is_organized(&self) -> bool {
+        matches!(&self.meta, Meta::Pcd(m) if m.is_organized())
+    }
 }
 
 /// Format-specific content besides the points that a sink writes back unchanged.
@@ -262,6 +277,8 @@ pub enum Trailer {
     Off(off::OffTrailer),
     /// XYZ and PTS comment lines after the points.
     Text(text::TextTrailer),
+    /// PCD bytes after the point data.
+    Pcd(pcd::PcdTrailer),
 }
 
 /// Everything a file holds besides its points.
@@ -333,6 +350,7 @@ pub fn open(path: &Path, format: Option<Format>) -> Result<Box<dyn Source>, IoEr
         Format::Xyz => Box::new(text::TextSource::open(path, text::TextFlavor::Xyz)?),
         Format::Pts => Box::new(text::TextSource::open(path, text::TextFlavor::Pts)?),
         Format::Kitti => Box::new(kitti::KittiSource::open(path)?),
+        Format::Pcd => Box::new(pcd::PcdSource::open(path)?),
     })
 }
 
@@ -340,7 +358,8 @@ pub fn open(path: &Path, format: Option<Format>) -> Result<Box<dyn Source>, IoEr
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct SinkOptions {
     /// Write each point's noise flag ([`crate::points::FLAG_NOISE`] in `PointBatch::flags`):
-    /// classification 7 in LAS, an extra `noise` property (0/1) in formats that can carry one.
+    /// classification 7 in LAS, an extra `noise` property (0/1) in formats that can carry one
+    /// (PCD: a `noise` field, `SIZE 1`, `TYPE U`).
     pub noise_flag: bool,
 }
 
@@ -374,7 +393,7 @@ pub fn create_with(
         Some(f) => f,
         None => Format::from_path(path)?,
     };
-    if options.noise_flag {
+    if options.noise_flag && !matches!(format, Format::Pcd) {
         return Err(IoError::Unsupported {
             path: path.to_path_buf(),
             detail: format!("{} output cannot carry a noise flag", format.name()),
@@ -397,6 +416,7 @@ pub fn create_with(
             count,
         )?),
         Format::Kitti => Box::new(kitti::KittiSink::create(path, like, count)?),
+        Format::Pcd => Box::new(pcd::PcdSink::create(path, like, count, options)?),
     })
 }
 
