@@ -142,7 +142,7 @@ fn job(params: Params) -> Job {
 /// Tile sizes from one tile down to a dozen points per tile (hundreds of tiles). Debug builds
 /// (the plain `cargo test`) skip the slowest sizes; CI's release run covers them all.
 const SIZES: &[u64] = if cfg!(debug_assertions) {
-    &[1_000_000, 700, 60]
+    &[1_000_000, 700, 30]
 } else {
     &[1_000_000, 3000, 700, 90, 12]
 };

@@ -39,12 +39,12 @@ use crate::points::{Faces, PointBatch, ScalarType, Schema};
 #[non_exhaustive]
 pub enum IoError {
     /// The operating system refused an operation.
-    #[error("{path}: {source}", path = .path.display())]
+    #[error("{path}: {error}", path = .path.display())]
     Io {
         /// File concerned.
         path: PathBuf,
-        /// Underlying error.
-        source: std::io::Error,
+        /// Underlying error (part of the message, so not chained as a source).
+        error: std::io::Error,
     },
     /// The file ends before the data its header announces.
     #[error("{path}: truncated: {detail}", path = .path.display())]
@@ -99,7 +99,7 @@ impl IoError {
         }
         IoError::Io {
             path: path.to_path_buf(),
-            source,
+            error: source,
         }
     }
 

@@ -49,12 +49,12 @@ pub enum PipelineError {
     #[error(transparent)]
     Io(#[from] IoError),
     /// The denoiser refused the input or the parameters.
-    #[error("{path}: {source}", path = .path.display())]
+    #[error("{path}: {error}", path = .path.display())]
     Denoise {
         /// Input file.
         path: PathBuf,
         /// What the denoiser said.
-        source: DenoiseError,
+        error: DenoiseError,
     },
     /// Parameters are invalid (checked before any I/O).
     #[error(transparent)]
@@ -74,12 +74,12 @@ pub enum PipelineError {
         detail: String,
     },
     /// The tiled path failed.
-    #[error("{path}: {source}", path = .path.display())]
+    #[error("{path}: {error}", path = .path.display())]
     Tiling {
         /// Input file.
         path: PathBuf,
         /// What failed.
-        source: TilingError,
+        error: TilingError,
     },
     /// The run was cancelled (Ctrl-C, a job cancel).
     #[error("cancelled")]
@@ -361,7 +361,7 @@ fn run_mesh(job: &Job) -> Result<Report, PipelineError> {
     let out = denoise::denoise(&cloud.positions, cloud.faces(), &job.params).map_err(|e| {
         PipelineError::Denoise {
             path: job.input.clone(),
-            source: e,
+            error: e,
         }
     })?;
     let mut stats = out.stats;
@@ -384,8 +384,8 @@ fn run_mesh(job: &Job) -> Result<Report, PipelineError> {
 
 /// True when `info`'s non-finite points must be written back (organized clouds) rather than
 /// dropped.
-fn keeps_non_finite(_info: &SourceInfo) -> bool {
-    false
+fn keeps_non_finite(info: &SourceInfo) -> bool {
+    info.is_organized()
 }
 
 /// The point-cloud rules that turn an input record plus its result into an output record.
@@ -411,6 +411,11 @@ impl Assembler {
             Some((p, m)) => (p, self.mode != OutlierMode::Off && m > self.threshold),
         };
         if outlier && self.mode == OutlierMode::Remove {
+            if self.keep_non_finite {
+                // An organized cloud keeps its image layout: a removed point becomes a NaN
+                // placeholder, as its invalid points are.
+                out.push(DVec3::NAN, batch.record(i));
+            }
             return true;
         }
         out.push(p, batch.record(i));
@@ -449,7 +454,7 @@ fn run_points_in_memory(job: &Job, opts: &RunOptions) -> Result<Report, Pipeline
     let ties: Vec<u64> = finite.iter().map(|&i| i as u64).collect();
     let denoise_err = |e| PipelineError::Denoise {
         path: job.input.clone(),
-        source: e,
+        error: e,
     };
     if pts.is_empty() {
         return Err(denoise_err(DenoiseError::Empty));
@@ -605,7 +610,7 @@ fn run_tiled(
 ) -> Result<Report, PipelineError> {
     let tiling_err = |e| PipelineError::Tiling {
         path: job.input.clone(),
-        source: e,
+        error: e,
     };
     let mut phases = Stats::default();
     let mut timer = Timer::start();
@@ -622,20 +627,20 @@ fn run_tiled(
     if planner.finite() == 0 {
         return Err(PipelineError::Denoise {
             path: job.input.clone(),
-            source: DenoiseError::Empty,
+            error: DenoiseError::Empty,
         });
     }
     let b = planner.bounds();
     if planner.finite() > 1 && b.size() == DVec3::ZERO {
         return Err(PipelineError::Denoise {
             path: job.input.clone(),
-            source: DenoiseError::AllIdentical(planner.finite() as usize),
+            error: DenoiseError::AllIdentical(planner.finite() as usize),
         });
     }
     if planner.finite() < job.params.k() as u64 {
         return Err(PipelineError::Denoise {
             path: job.input.clone(),
-            source: DenoiseError::Neighbours(crate::neighbours::NeighboursError::TooFewPoints {
+            error: DenoiseError::Neighbours(crate::neighbours::NeighboursError::TooFewPoints {
                 points: planner.finite() as usize,
                 k: job.params.k(),
             }),
@@ -722,7 +727,7 @@ fn run_tiled(
     let removed = if job.outliers == OutlierMode::Remove {
         let mut merge = ResultMerge::open(dir.path(), plan.tiles.len()).map_err(tiling_err)?;
         let mut n = 0u64;
-        while let Some(r) = merge.next().map_err(tiling_err)? {
+        while let Some(r) = merge.next_result().map_err(tiling_err)? {
             n += (r.knn_mean > asm.threshold) as u64;
         }
         n
@@ -734,7 +739,7 @@ fn run_tiled(
     } else {
         plan.points - plan.finite
     };
-    let count = plan.points - dropped - removed;
+    let count = plan.points - dropped - if asm.keep_non_finite { 0 } else { removed };
     opts.progress.phase("stitch", plan.points);
     let mut sink = io::create_with(
         &job.output,
@@ -744,7 +749,7 @@ fn run_tiled(
         &sink_options(job),
     )?;
     let mut merge = ResultMerge::open(dir.path(), plan.tiles.len()).map_err(tiling_err)?;
-    let mut next: Option<TileResult> = merge.next().map_err(tiling_err)?;
+    let mut next: Option<TileResult> = merge.next_result().map_err(tiling_err)?;
     let mut out = PointBatch::with_capacity(info.schema.record_len, BATCH);
     let mut found = 0u64;
     let mut written = 0u64;
@@ -754,7 +759,7 @@ fn run_tiled(
             let gi = b.start + i as u64;
             let result = match next {
                 Some(r) if r.index == gi => {
-                    next = merge.next().map_err(tiling_err)?;
+                    next = merge.next_result().map_err(tiling_err)?;
                     Some((r.p, r.knn_mean))
                 }
                 _ => None,

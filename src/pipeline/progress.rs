@@ -34,8 +34,8 @@ struct LogState {
     last: Instant,
 }
 
-/// Writes a plain line to stderr when a phase starts and at most every `every` while it runs
-/// (for logs and pipes, where a bar would be noise).
+/// Writes a plain progress line to stderr at most every `every` while a phase runs (for logs and
+/// pipes, where a bar would be noise). Runs shorter than `every` print nothing.
 #[derive(Debug)]
 pub struct LogProgress {
     every: Duration,
@@ -55,7 +55,6 @@ impl LogProgress {
 impl Progress for LogProgress {
     fn phase(&self, name: &str, total: u64) {
         let now = Instant::now();
-        eprintln!("qemd: {name}: started ({total} units)");
         // std Mutex: held only to swap small state, never across I/O of the pipeline.
         *self.state.lock().unwrap_or_else(|e| e.into_inner()) = Some(LogState {
             name: name.to_string(),

@@ -40,12 +40,12 @@ use spill::{TilePoint, TileResult, read_spill, write_results};
 #[non_exhaustive]
 pub enum TilingError {
     /// A temporary file could not be read or written.
-    #[error("{path}: {source}", path = .path.display())]
+    #[error("{path}: {error}", path = .path.display())]
     Io {
         /// The file.
         path: PathBuf,
         /// The OS error.
-        source: std::io::Error,
+        error: std::io::Error,
     },
     /// A temporary file has an impossible length (disk trouble, or a foreign file).
     #[error("{path}: corrupt temporary file: {detail}", path = .path.display())]
@@ -59,12 +59,12 @@ pub enum TilingError {
     #[error(transparent)]
     Result(Box<IoError>),
     /// The operator failed on a tile.
-    #[error("tile {tile}: {source}")]
+    #[error("tile {tile}: {error}")]
     Denoise {
         /// The tile.
         tile: usize,
         /// The operator's error.
-        source: DenoiseError,
+        error: DenoiseError,
     },
     /// A tile's halo kept growing without making its results exact.
     #[error("tile {tile}: results still not exact with a halo of {halo} (cloud too sparse?)")]
@@ -185,7 +185,7 @@ pub fn spacing_of_tile(dir: &Path, plan: &Plan, t: usize) -> Result<ExactSum, Ti
             return Ok((ExactSum::new(), false));
         }
         let (sum, exact) = cloud::spacing_partial(run, |i| pts[i].owned)
-            .map_err(|e| TilingError::Denoise { tile: t, source: e })?;
+            .map_err(|e| TilingError::Denoise { tile: t, error: e })?;
         let ok = pts.iter().zip(&exact).all(|(p, e)| !p.owned || *e);
         Ok((sum, ok))
     })?;
@@ -213,7 +213,7 @@ pub fn process_tile(
             return Ok((None, false));
         }
         let r = cloud::run(run, params, globals)
-            .map_err(|e| TilingError::Denoise { tile: t, source: e })?;
+            .map_err(|e| TilingError::Denoise { tile: t, error: e })?;
         let ok = pts.iter().zip(&r.exact).all(|(p, e)| !p.owned || *e);
         Ok((Some(r), ok))
     })?;

@@ -41,7 +41,7 @@ pub fn result_path(dir: &Path, t: usize) -> PathBuf {
 fn err(path: &Path, e: std::io::Error) -> TilingError {
     TilingError::Io {
         path: path.to_path_buf(),
-        source: e,
+        error: e,
     }
 }
 
@@ -263,7 +263,7 @@ impl ResultMerge {
                 let path = dir.join(format!("merge_{level}_{g:05}.res"));
                 let mut m = ResultMerge::from_paths(group)?;
                 let mut w = BufWriter::new(File::create(&path).map_err(|e| err(&path, e))?);
-                while let Some(r) = m.next()? {
+                while let Some(r) = m.next_result()? {
                     w.write_all(&encode(&r)).map_err(|e| err(&path, e))?;
                 }
                 w.into_inner().map_err(|e| err(&path, e.into_error()))?;
@@ -316,7 +316,7 @@ impl ResultMerge {
     ///
     /// # Errors
     /// Read failures.
-    pub fn next(&mut self) -> Result<Option<TileResult>, TilingError> {
+    pub fn next_result(&mut self) -> Result<Option<TileResult>, TilingError> {
         let Some(Reverse((_, t))) = self.heap.pop() else {
             return Ok(None);
         };
@@ -353,7 +353,7 @@ mod tests {
         write_results(dir.path(), 1, &mut [r(3), r(0), r(9)]).unwrap();
         let mut m = ResultMerge::open(dir.path(), 2).unwrap();
         let mut got = Vec::new();
-        while let Some(x) = m.next().unwrap() {
+        while let Some(x) = m.next_result().unwrap() {
             got.push(x.index);
         }
         assert_eq!(got, vec![0, 1, 3, 4, 7, 9]);
@@ -376,8 +376,8 @@ mod tests {
         w.finish().unwrap();
         let mut m = ResultMerge::open(dir.path(), tiles).unwrap();
         for want in 0..tiles as u64 {
-            assert_eq!(m.next().unwrap().unwrap().index, want);
+            assert_eq!(m.next_result().unwrap().unwrap().index, want);
         }
-        assert!(m.next().unwrap().is_none());
+        assert!(m.next_result().unwrap().is_none());
     }
 }
