@@ -29,6 +29,7 @@
 //! merge across tiles to the same bits as over the whole cloud.
 
 use glam::DVec3;
+use rayon::prelude::*;
 
 use super::frame::Frame;
 use super::normals::pca_normals;
@@ -139,10 +140,12 @@ fn taint(
         return vec![false; pos.len()];
     };
     let mut t: Vec<bool> = (0..pos.len())
+        .into_par_iter()
         .map(|i| !inside(region, pos[i], radii[i]))
         .collect();
     for _ in 0..hops {
         let next: Vec<bool> = (0..pos.len())
+            .into_par_iter()
             .map(|i| t[i] || lists.get(i).iter().any(|&u| t[u as usize]))
             .collect();
         if next == t {
@@ -200,9 +203,11 @@ pub fn run(
         reach(params),
     );
     let duplicate: Vec<bool> = (0..n)
+        .into_par_iter()
         .map(|j| is_duplicate(&frame.positions, &lists, &frame.ties, j))
         .collect();
     let knn_mean: Vec<f64> = (0..n)
+        .into_par_iter()
         .map(|j| {
             let others = lists.get(j).iter().filter(|&&u| u as usize != j);
             let (sum, count) = others.fold((0.0, 0usize), |(s, c), &u| {

@@ -7,6 +7,7 @@
 //! are stored, never which neighbours they get: results are bit-identical to the input order.
 
 use glam::DVec3;
+use rayon::prelude::*;
 
 use crate::neighbours::spatial_order;
 
@@ -19,6 +20,8 @@ pub struct Frame {
     pub positions: Vec<DVec3>,
     /// Global index of each working point (the tie key for neighbour ranking).
     pub ties: Vec<u64>,
+    /// `inverse[i]` is the working index of input point `i`.
+    inverse: Vec<u32>,
 }
 
 impl Frame {
@@ -26,25 +29,29 @@ impl Frame {
     /// index when `None`).
     pub fn new(input: &[DVec3], global: Option<&[u64]>) -> Frame {
         let order = spatial_order(input);
-        let positions = order.iter().map(|&i| input[i as usize]).collect();
+        let positions = order.par_iter().map(|&i| input[i as usize]).collect();
         let ties = order
-            .iter()
+            .par_iter()
             .map(|&i| global.map_or(i as u64, |g| g[i as usize]))
             .collect();
+        let mut inverse = vec![0u32; order.len()];
+        for (j, &i) in order.iter().enumerate() {
+            inverse[i as usize] = j as u32;
+        }
         Frame {
             order,
             positions,
             ties,
+            inverse,
         }
     }
 
     /// Puts per-point values computed in working order back into input order.
-    pub fn restore<T: Copy + Default>(&self, working: &[T]) -> Vec<T> {
-        let mut out = vec![T::default(); working.len()];
-        for (&i, &v) in self.order.iter().zip(working) {
-            out[i as usize] = v;
-        }
-        out
+    pub fn restore<T: Copy + Send + Sync>(&self, working: &[T]) -> Vec<T> {
+        self.inverse
+            .par_iter()
+            .map(|&j| working[j as usize])
+            .collect()
     }
 }
 

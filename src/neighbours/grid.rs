@@ -47,7 +47,14 @@ struct Block {
     ids: Vec<u32>,
     ties: Vec<u64>,
     d: Vec<f64>,
+    sel: Vec<u32>,
     best: Vec<(u128, u32)>,
+    /// The last answered query of this thread (any cell): its k-th distance bounds the next
+    /// query's by the triangle inequality.
+    prev: Option<([f64; 3], f64)>,
+    /// Block positions of the last answered query's neighbours, while the block is unchanged:
+    /// the farthest of them from the next query bounds its k-th distance tightly.
+    prev_sel: Vec<u32>,
 }
 
 /// The answers of the grid pass for one cell: per point its index and k-th squared distance
@@ -122,50 +129,91 @@ pub(crate) fn all_knn(
             blk.zs.clear();
             blk.ids.clear();
             blk.ties.clear();
-            let mut push = |lo: u32, hi: u32| {
-                let (lo, hi) = (lo as usize, hi as usize);
-                blk.ids.extend_from_slice(&sorted[lo..hi]);
-                blk.ties.extend(sorted[lo..hi].iter().map(|&i| tie(i)));
-                for p in &ordered[lo..hi] {
-                    blk.xs.push(p[0]);
-                    blk.ys.push(p[1]);
-                    blk.zs.push(p[2]);
-                }
-            };
-            for dz in -1..=1 {
-                for dy in -1..=1 {
-                    for dx in -1..=1 {
-                        if let Some(&(lo, hi)) = table.get(&key([c[0] + dx, c[1] + dy, c[2] + dz]))
-                        {
-                            push(lo, hi);
+            let push_ring = |blk: &mut Block, ring: i64| {
+                for dz in -ring..=ring {
+                    for dy in -ring..=ring {
+                        for dx in -ring..=ring {
+                            if dx.abs().max(dy.abs()).max(dz.abs()) != ring {
+                                continue;
+                            }
+                            let Some(&(lo, hi)) =
+                                table.get(&key([c[0] + dx, c[1] + dy, c[2] + dz]))
+                            else {
+                                continue;
+                            };
+                            let (lo, hi) = (lo as usize, hi as usize);
+                            blk.ids.extend_from_slice(&sorted[lo..hi]);
+                            blk.ties.extend(sorted[lo..hi].iter().map(|&i| tie(i)));
+                            for p in &ordered[lo..hi] {
+                                blk.xs.push(p[0]);
+                                blk.ys.push(p[1]);
+                                blk.zs.push(p[2]);
+                            }
                         }
                     }
                 }
-            }
+            };
+            blk.prev_sel.clear();
+            push_ring(blk, 0);
+            push_ring(blk, 1);
             let lo = [c[0] as f64 * cell, c[1] as f64 * cell, c[2] as f64 * cell];
             let n = (b - a) as usize;
             let mut out = CellAnswers {
                 points: Vec::with_capacity(n),
                 lists: Vec::with_capacity(n * k),
             };
-            let mut prev: Option<([f64; 3], f64)> = None;
+            let mut retry = Vec::new();
             for (&qi, &q) in sorted[a as usize..b as usize]
                 .iter()
                 .zip(&ordered[a as usize..b as usize])
             {
-                let r = query(blk, q, k, lo, cell, prev, &mut out.lists);
-                if !r.is_nan() {
-                    prev = Some((q, r));
+                let r = query(blk, q, k, lo, cell, 1, &mut out.lists);
+                if r.is_nan() {
+                    retry.push(out.points.len());
+                } else {
+                    blk.prev = Some((q, r));
                 }
                 out.points.push((qi, r));
+            }
+            if !retry.is_empty() {
+                // A second ring around the cell answers most of what the first could not
+                // (points near a sparse border); the rest go to the k-d tree. Answers are
+                // appended in retry order, so reorder the lists to follow `points`.
+                push_ring(blk, 2);
+                blk.prev_sel.clear();
+                let mut extra = Vec::new();
+                for &slot in &retry {
+                    let qi = out.points[slot].0;
+                    let q = local[qi as usize];
+                    let r = query(blk, q, k, lo, cell, 2, &mut extra);
+                    out.points[slot].1 = r;
+                }
+                if extra.is_empty() {
+                    return out;
+                }
+                let mut lists = Vec::with_capacity(out.lists.len() + extra.len());
+                let (mut first, mut second) = (0, 0);
+                let mut next_retry = retry.iter().peekable();
+                for (slot, &(_, r)) in out.points.iter().enumerate() {
+                    let retried = next_retry.peek() == Some(&&slot);
+                    if retried {
+                        next_retry.next();
+                        if !r.is_nan() {
+                            lists.extend_from_slice(&extra[second..second + k]);
+                            second += k;
+                        }
+                    } else if !r.is_nan() {
+                        lists.extend_from_slice(&out.lists[first..first + k]);
+                        first += k;
+                    }
+                }
+                out.lists = lists;
             }
             out
         })
         .collect()
 }
 
-/// Orders (distance, tie key) pairs as one integer: squared distances are non-negative, so their
-/// IEEE bit patterns sort like the values.
 #[inline(always)]
 pub(crate) fn rank(d: f64, tie: u64) -> u128 {
     (d.to_bits() as u128) << 64 | tie as u128
@@ -177,19 +225,20 @@ pub(crate) fn rank_distance(r: u128) -> f64 {
     f64::from_bits((r >> 64) as u64)
 }
 
-/// Appends the k nearest candidates of `q` in the block to `lists` and returns the k-th squared
-/// distance, or returns NaN (appending nothing) when the block cannot prove the answer complete.
+/// Appends the k nearest candidates of `q` in the block (the cells within `ring` of its own,
+/// whose lower corner is `lo`) to `lists` and returns the k-th squared distance, or returns NaN
+/// (appending nothing) when the block cannot prove the answer complete.
 ///
-/// `prev` is an answered query of the same cell: by the triangle inequality its k neighbours lie
-/// within `√d_prev + |q − q_prev|` of `q`, which bounds this query's k-th distance and lets all
-/// but a few candidates be discarded with one comparison.
+/// `blk.prev` is an earlier answered query: by the triangle inequality its k neighbours lie within
+/// `√d_prev + |q − q_prev|` of `q`, which bounds this query's k-th distance and lets all but a
+/// few candidates be discarded with one comparison.
 fn query(
     blk: &mut Block,
     q: [f64; 3],
     k: usize,
     lo: [f64; 3],
     cell: f64,
-    prev: Option<([f64; 3], f64)>,
+    ring: i64,
     lists: &mut Vec<u32>,
 ) -> f64 {
     let m = blk.ids.len();
@@ -199,45 +248,60 @@ fn query(
     blk.d.clear();
     blk.d
         .extend((0..m).map(|j| dist2(q, [blk.xs[j], blk.ys[j], blk.zs[j]])));
-    let t = match prev {
-        Some((pq, pr)) => {
-            let bound = pr.sqrt() + dist2(q, pq).sqrt();
-            // Widened so rounding in either distance cannot drop a true member.
-            bound * bound * (1.0 + 1e-9) + f64::MIN_POSITIVE
+    let t = if blk.prev_sel.len() == k {
+        // k block members lie within the farthest of them: an exact bound, same formula.
+        blk.prev_sel
+            .iter()
+            .map(|&j| blk.d[j as usize])
+            .fold(0.0, f64::max)
+    } else {
+        match blk.prev {
+            Some((pq, pr)) => {
+                let bound = pr.sqrt() + dist2(q, pq).sqrt();
+                // Widened so rounding in either distance cannot drop a true member.
+                bound * bound * (1.0 + 1e-9) + f64::MIN_POSITIVE
+            }
+            None => f64::INFINITY,
         }
-        None => f64::INFINITY,
     };
-    let best = &mut blk.best;
-    best.clear();
-    best.resize(m, (0, 0));
     // Branchless compaction of the candidates within the bound.
+    let sel = &mut blk.sel;
+    sel.clear();
+    sel.resize(m, 0);
     let mut kept = 0;
     for j in 0..m {
-        best[kept] = (rank(blk.d[j], blk.ties[j]), blk.ids[j]);
+        sel[kept] = j as u32;
         kept += (blk.d[j] <= t) as usize;
     }
     if kept < k {
-        for (j, b) in best.iter_mut().enumerate() {
-            *b = (rank(blk.d[j], blk.ties[j]), blk.ids[j]);
+        for (j, s) in sel.iter_mut().enumerate() {
+            *s = j as u32;
         }
         kept = m;
     }
-    best.truncate(kept);
+    let best = &mut blk.best;
+    best.clear();
+    best.extend(sel[..kept].iter().map(|&j| {
+        let ju = j as usize;
+        (rank(blk.d[ju], blk.ties[ju]), j)
+    }));
     if kept > 2 * k {
         best.select_nth_unstable(k - 1);
         best.truncate(k);
     }
     best.sort_unstable();
     let dk = rank_distance(best[k - 1].0);
-    // Any point outside the 3×3×3 block is at least `reach` away.
+    // Any point outside the block is at least `reach` away.
     let mut inner = f64::INFINITY;
     for a in 0..3 {
         inner = inner.min(q[a] - lo[a]).min(lo[a] + cell - q[a]);
     }
-    let reach = cell + inner.max(0.0);
+    let reach = ring as f64 * cell + inner.max(0.0);
     // Strict, with a relative margin for the rounding of `dist2`.
+    blk.prev_sel.clear();
+    blk.prev_sel.extend(best[..k].iter().map(|e| e.1));
     if dk < reach * reach * (1.0 - 1e-9) {
-        lists.extend(best[..k].iter().map(|e| e.1));
+        lists.extend(best[..k].iter().map(|e| blk.ids[e.1 as usize]));
         dk
     } else {
         f64::NAN

@@ -29,6 +29,7 @@ mod mesh;
 pub use mesh::{MeshAdjacency, RingScratch};
 
 use std::num::NonZeroUsize;
+use std::sync::OnceLock;
 
 use glam::DVec3;
 use kiddo::{ImmutableKdTree, SquaredEuclidean};
@@ -108,7 +109,8 @@ type Tree = ImmutableKdTree<f64, 3>;
 
 /// Exact k-NN and radius queries over a point set, with ties broken by a global key.
 pub struct KnnIndex {
-    tree: Tree,
+    /// Built on first use: the all-points pass rarely needs it.
+    tree: OnceLock<Tree>,
     /// Positions relative to `origin`, as stored in the tree.
     local: Vec<[f64; 3]>,
     origin: DVec3,
@@ -128,25 +130,40 @@ impl KnnIndex {
         if points.len() > u32::MAX as usize {
             return Err(NeighboursError::TooManyPoints(points.len()));
         }
-        let local: Vec<[f64; 3]> = points.iter().map(|&p| (p - origin).to_array()).collect();
-        let entries: Vec<(u32, [f64; 3])> = local
-            .iter()
-            .enumerate()
-            .filter(|(_, p)| p.iter().all(|c| c.is_finite()))
-            .map(|(i, &p)| (i as u32, p))
+        let local: Vec<[f64; 3]> = points
+            .par_iter()
+            .map(|&p| (p - origin).to_array())
             .collect();
-        let tree = if entries.is_empty() {
-            Tree::new_from_entries(&[(0, [0.0; 3])])
-        } else {
-            Tree::new_from_entries(&entries)
-        }
-        .map_err(|e| NeighboursError::Tree(e.to_string()))?;
+        let indexed = local
+            .iter()
+            .filter(|p| p.iter().all(|c| c.is_finite()))
+            .count();
         Ok(KnnIndex {
-            tree,
+            tree: OnceLock::new(),
             local,
             origin,
-            indexed: entries.len(),
+            indexed,
             ties: None,
+        })
+    }
+
+    /// The k-d tree over the finite points, built on first use.
+    fn tree(&self) -> &Tree {
+        self.tree.get_or_init(|| {
+            let entries: Vec<(u32, [f64; 3])> = self
+                .local
+                .iter()
+                .enumerate()
+                .filter(|(_, p)| p.iter().all(|c| c.is_finite()))
+                .map(|(i, &p)| (i as u32, p))
+                .collect();
+            let entries = if entries.is_empty() {
+                vec![(0, [0.0; 3])]
+            } else {
+                entries
+            };
+            // Construction from entries fails only on counts beyond u32, refused in `build`.
+            Tree::new_from_entries(&entries).expect("k-d tree over at most u32::MAX points")
         })
     }
 
@@ -214,13 +231,13 @@ impl KnnIndex {
         }
         let want = k.min(self.indexed);
         let proposal = self
-            .tree
+            .tree()
             .query(&q)
             .nearest_n::<SquaredEuclidean<f64>>(NonZeroUsize::new(want).expect("want ≥ 1"))
             .execute();
         let r = proposal.last().map_or(0.0, |c| c.distance);
         let mut cand: Vec<(u128, u32)> = self
-            .tree
+            .tree()
             .query(&q)
             .within::<SquaredEuclidean<f64>>(inflate(r))
             .unsorted()
@@ -250,7 +267,7 @@ impl KnnIndex {
         }
         let start = out.len();
         out.extend(
-            self.tree
+            self.tree()
                 .query(&q)
                 .within::<SquaredEuclidean<f64>>(inflate(r2))
                 .unsorted()
@@ -268,30 +285,44 @@ impl KnnIndex {
         self.local[i]
     }
 
-    /// A grid cell size for [`KnnIndex::knn_all`]: 1.3 × the median k-th neighbour distance of
-    /// an evenly strided sample, bounded so the grid has at most 2^19 cells per axis.
+    /// A grid cell size for [`KnnIndex::knn_all`]: 1.3 × the median k-th neighbour distance,
+    /// estimated on an evenly strided subsample of at most 16 384 points (for a stride `s`, a
+    /// ball holding k − 1 neighbours holds about (k − 1)/s sample points; below 5, radii are
+    /// scaled as on a surface, ∝ √count), and bounded so the grid has at most 2^19 cells per axis. Only speed
+    /// depends on it: the grid pass is exact for any cell size.
     fn cell_size(&self, k: usize) -> f64 {
-        let finite: Vec<usize> = (0..self.local.len())
-            .filter(|&i| self.local[i].iter().all(|c| c.is_finite()))
-            .collect();
-        let step = (finite.len() / 1024).max(1);
-        let mut radii: Vec<f64> = finite
+        let finite: Vec<DVec3> = self
+            .local
             .iter()
+            .filter(|p| p.iter().all(|c| c.is_finite()))
+            .map(|&p| DVec3::from_array(p))
+            .collect();
+        let stride = (finite.len() / 16_384).max(1);
+        let sample: Vec<DVec3> = finite.iter().step_by(stride).copied().collect();
+        // Lists include the point itself, so a list of k holds k − 1 neighbours.
+        let ks = ((k - 1) as f64 / stride as f64).round().max(5.0) as usize + 1;
+        let scale = ((k - 1) as f64 / ((ks - 1) * stride) as f64).sqrt();
+        let extent = finite
+            .iter()
+            .fold(0.0f64, |m, p| m.max(p.abs().max_element()));
+        let floor = extent / (1u64 << 19) as f64;
+        if sample.len() <= ks {
+            return floor;
+        }
+        let Ok(sub) = KnnIndex::build(&sample, DVec3::ZERO) else {
+            return floor;
+        };
+        let step = (sample.len() / 1024).max(1);
+        let mut radii: Vec<f64> = (0..sample.len())
             .step_by(step)
-            .map(|&i| {
-                let mut v = Vec::with_capacity(k);
-                self.knn_of(i, k, &mut v).sqrt()
+            .map(|i| {
+                let mut v = Vec::with_capacity(ks);
+                sub.knn_of(i, ks, &mut v).sqrt()
             })
             .collect();
         radii.sort_by(f64::total_cmp);
         let median = radii.get(radii.len() / 2).copied().unwrap_or(0.0);
-        let mut extent = 0.0f64;
-        for &i in &finite {
-            for c in self.local[i] {
-                extent = extent.max(c.abs());
-            }
-        }
-        (1.3 * median).max(extent / (1u64 << 19) as f64)
+        (1.3 * median * scale).max(floor)
     }
 
     /// k-NN lists of every indexed point (the point itself included), computed in parallel;
@@ -327,29 +358,30 @@ impl KnnIndex {
         let mut offsets = Vec::with_capacity(n + 1);
         offsets.push(0u32);
         let mut total = 0u32;
-        for p in &self.local {
+        let mut listed = Vec::with_capacity(n);
+        for (i, p) in self.local.iter().enumerate() {
             if p.iter().all(|c| c.is_finite()) {
                 total += k as u32;
+                listed.push(i as u32);
             }
             offsets.push(total);
         }
-        let mut indices = vec![0u32; total as usize];
-        let mut radii = vec![0.0f64; n];
+        // Where each point's answer is: (cell, offset into its lists), or (MAX, fallback slot).
+        const TREE: u32 = u32::MAX;
+        let mut loc = vec![(TREE, 0u32); n];
         let mut fallback = Vec::new();
-        for c in &cells {
-            let mut at = 0;
+        for (ci, c) in cells.iter().enumerate() {
+            let mut at = 0u32;
             for &(i, r) in &c.points {
                 if r.is_nan() {
+                    loc[i as usize] = (TREE, fallback.len() as u32);
                     fallback.push(i);
                 } else {
-                    let o = offsets[i as usize] as usize;
-                    indices[o..o + k].copy_from_slice(&c.lists[at..at + k]);
-                    at += k;
-                    radii[i as usize] = r;
+                    loc[i as usize] = (ci as u32, at);
+                    at += k as u32;
                 }
             }
         }
-        drop(cells);
         // Sparse regions and outliers go to the tree, in parallel.
         let resolved: Vec<(Vec<u32>, f64)> = fallback
             .par_iter()
@@ -359,10 +391,30 @@ impl KnnIndex {
                 (v, r)
             })
             .collect();
-        for (&i, (list, r)) in fallback.iter().zip(resolved) {
-            let o = offsets[i as usize] as usize;
-            indices[o..o + k].copy_from_slice(&list);
-            radii[i as usize] = r;
+        // Gather every list into CSR order, in parallel.
+        let mut indices = vec![0u32; total as usize];
+        indices
+            .par_chunks_mut(k)
+            .zip(listed.par_iter())
+            .for_each(|(dst, &i)| {
+                let (ci, at) = loc[i as usize];
+                if ci == TREE {
+                    dst.copy_from_slice(&resolved[at as usize].0);
+                } else {
+                    let at = at as usize;
+                    dst.copy_from_slice(&cells[ci as usize].lists[at..at + k]);
+                }
+            });
+        let mut radii = vec![0.0f64; n];
+        for c in &cells {
+            for &(i, r) in &c.points {
+                if !r.is_nan() {
+                    radii[i as usize] = r;
+                }
+            }
+        }
+        for (&i, (_, r)) in fallback.iter().zip(&resolved) {
+            radii[i as usize] = *r;
         }
         Ok((Neighbourhoods { offsets, indices }, radii))
     }

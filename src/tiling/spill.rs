@@ -15,6 +15,7 @@ use std::io::{BufReader, BufWriter, Read, Write};
 use std::path::{Path, PathBuf};
 
 use glam::DVec3;
+use rayon::prelude::*;
 
 use super::TilingError;
 use crate::io::AtomicFile;
@@ -204,7 +205,7 @@ fn encode(r: &TileResult) -> [u8; RESULT_RECORD] {
 /// # Errors
 /// Write failures.
 pub fn write_results(dir: &Path, t: usize, results: &mut [TileResult]) -> Result<u64, TilingError> {
-    results.sort_unstable_by_key(|r| r.index);
+    results.par_sort_unstable_by_key(|r| r.index);
     let path = result_path(dir, t);
     let mut f = AtomicFile::create(&path).map_err(|e| TilingError::Result(Box::new(e)))?;
     for r in results.iter() {
