@@ -19,13 +19,14 @@
 //! One backend per format lives in its own module; this module only dispatches.
 
 pub mod kitti;
+pub mod las;
 pub mod obj;
 pub mod off;
 pub mod ply;
 pub mod text;
 
 use std::fs::File;
-use std::io::{BufWriter, Write};
+use std::io::{BufWriter, Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
 
 use glam::DVec3;
@@ -144,9 +145,11 @@ pub enum Format {
     Pts,
     /// KITTI Velodyne scan: little-endian `f32` x, y, z, intensity records (`.bin`).
     Kitti,
+    /// ASPRS LAS (`.las`), LAZ (`.laz`, compressed) and COPC (`.copc.laz`, read as LAZ).
+    Las,
 }
 
-const KNOWN: &str = ".ply, .obj, .off, .xyz, .txt, .pts, .bin";
+const KNOWN: &str = ".ply, .obj, .off, .xyz, .txt, .pts, .bin, .las, .laz";
 
 impl Format {
     /// Tells the format from a file extension (case-insensitive).
@@ -167,7 +170,7 @@ impl Format {
     }
 
     /// Parses a format name or extension (`ply`, `obj`, `off`, `xyz`, `txt`, `pts`, `bin`,
-    /// `kitti`).
+    /// `kitti`, `las`, `laz`).
     pub fn from_name(name: &str) -> Option<Format> {
         match name.to_ascii_lowercase().as_str() {
             "ply" => Some(Format::Ply),
@@ -176,6 +179,7 @@ impl Format {
             "xyz" | "txt" => Some(Format::Xyz),
             "pts" => Some(Format::Pts),
             "bin" | "kitti" => Some(Format::Kitti),
+            "las" | "laz" => Some(Format::Las),
             _ => None,
         }
     }
@@ -189,6 +193,7 @@ impl Format {
             Format::Xyz => "xyz",
             Format::Pts => "pts",
             Format::Kitti => "bin",
+            Format::Las => "las",
         }
     }
 }
@@ -208,6 +213,8 @@ pub enum Meta {
     Off(off::OffMeta),
     /// XYZ and PTS header lines and separator.
     Text(text::TextMeta),
+    /// LAS public header and VLRs.
+    Las(las::LasMeta),
 }
 
 /// What a source says about its file before any point is read.
@@ -262,6 +269,8 @@ pub enum Trailer {
     Off(off::OffTrailer),
     /// XYZ and PTS comment lines after the points.
     Text(text::TextTrailer),
+    /// LAS EVLRs after the points.
+    Las(las::LasTrailer),
 }
 
 /// Everything a file holds besides its points.
@@ -333,6 +342,7 @@ pub fn open(path: &Path, format: Option<Format>) -> Result<Box<dyn Source>, IoEr
         Format::Xyz => Box::new(text::TextSource::open(path, text::TextFlavor::Xyz)?),
         Format::Pts => Box::new(text::TextSource::open(path, text::TextFlavor::Pts)?),
         Format::Kitti => Box::new(kitti::KittiSource::open(path)?),
+        Format::Las => Box::new(las::LasSource::open(path)?),
     })
 }
 
@@ -374,7 +384,7 @@ pub fn create_with(
         Some(f) => f,
         None => Format::from_path(path)?,
     };
-    if options.noise_flag {
+    if options.noise_flag && format != Format::Las {
         return Err(IoError::Unsupported {
             path: path.to_path_buf(),
             detail: format!("{} output cannot carry a noise flag", format.name()),
@@ -397,6 +407,7 @@ pub fn create_with(
             count,
         )?),
         Format::Kitti => Box::new(kitti::KittiSink::create(path, like, count)?),
+        Format::Las => Box::new(las::LasSink::create(path, like, count, options)?),
     })
 }
 
@@ -461,6 +472,13 @@ impl AtomicFile {
     /// Wraps an OS error with the target path.
     pub fn err(&self, e: std::io::Error) -> IoError {
         IoError::io(&self.target, e)
+    }
+}
+
+/// Seeking flushes the buffer first; backends that patch a header after the data (LAS) use it.
+impl Seek for AtomicFile {
+    fn seek(&mut self, pos: SeekFrom) -> std::io::Result<u64> {
+        self.tmp.seek(pos)
     }
 }
 
