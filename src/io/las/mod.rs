@@ -16,8 +16,10 @@
 //!   file holds, a file that is not LAS and bad LAZ framing fail at once with a one-line
 //!   [`IoError`] naming the file. The header is parsed with `las::raw::Header`; LAZ point data is
 //!   decompressed with the `laz` crate (the engine of `las`) one batch at a time, so neither
-//!   direction ever holds the whole file. The LAZ code runs under `catch_unwind`: corrupt
-//!   compressed data that makes it panic is reported as an error.
+//!   direction ever holds the whole file. For LAZ the point count is checked against the chunk
+//!   table: exactly for variable-size chunks (COPC), to within the last chunk for fixed-size ones
+//!   (a smaller excess is caught only if the compressed data runs out, as in LASzip itself). The
+//!   LAZ codec runs under `catch_unwind`: corrupt data that makes it panic is reported as an error.
 //! * Positions are decoded in f64 with the file's own scale and offset: `x = X·scale + offset`.
 //! * [`LasSink`] writes the points of a batch as raw records: every byte of a record travels through
 //!   unchanged except X, Y and Z, which are quantised with the *file's* scale and offset,
@@ -65,23 +67,26 @@
 //! **COPC** (`*.copc.laz`) is read as the LAZ file it is: all points in file order (node by node).
 //! Writing it back gives a plain LAZ file, not COPC, since moved points no longer match the octree
 //! and the chunk offsets change: the COPC info VLR (`copc`/1) and the hierarchy EVLR
-//! (`copc`/1000) are dropped and the laszip VLR's variable chunk size becomes fixed 50 000-point
-//! chunks (only its chunk-size field changes). Every other VLR and EVLR, `copc`/10000 extents
-//! included, is kept verbatim.
+//! (`copc`/1000) are dropped and the laszip VLR's variable chunk size becomes fixed
+//! [`LAZ_CHUNK_SIZE`]-point chunks (only its chunk-size field changes). Every other VLR and EVLR,
+//! the `copc`/10000 extents included, is kept verbatim; so is the rest of the header (the VLR
+//! count and offset to the point data follow the dropped VLR).
 //!
 //! # Writing anything else as LAS
 //!
 //! A source of another format ([`Meta::None`], PLY, …) is written as **LAS 1.4, PDRF 6**, global
 //! encoding 0x10 (WKT; no CRS is known), system identifier `OTHER`, generating software `qemd`,
-//! today's date. Every non-xyz field of the source schema becomes an extra byte field of the same
-//! type and name, described by an Extra Bytes VLR, so nothing is lost. The sink only sees
-//! positions batch by batch, so the frame is chosen from the **first batch**: with `E` the largest
-//! extent along an axis, the scale (common to x, y, z) is the power of ten
-//! `10^(ceil(log10 E) − 6)` clamped to `[1e-9, 1e-3]` (1 mm or finer; 0.001 when `E` is 0), i.e.
-//! at least a million steps across the first batch, and each offset is the axis minimum rounded
-//! down to a multiple of `unit = scale·10⁶` (so UTM coordinates get offsets like 500 000 and keep
-//! full precision). Later points may lie up to about 2000 first-batch extents away before the
-//! 32-bit range is exceeded, which is reported as an error.
+//! today's date, legacy counts zero. Every non-xyz field of the source schema becomes an extra
+//! byte field of the same type and name, described by an Extra Bytes VLR, so nothing is lost.
+//!
+//! The sink only sees positions batch by batch, so the frame is chosen from the **first batch**:
+//! with `E` the largest extent along an axis, the scale (common to x, y, z) is the power of ten
+//! `10^(ceil(log10 E) − 6)` capped at 0.001 and floored at 1e-9 (0.001 when `E` is 0): 10⁵–10⁶
+//! steps across the first batch, 1 mm for extents above a kilometre. Each offset is the axis
+//! minimum rounded down to a multiple of `unit = scale·10⁶` (a power of ten ≥ `E`), so UTM
+//! coordinates get offsets like 500 000 and keep full precision. Points up to 2147 units from the
+//! offset fit (at least 2147 first-batch extents, or 2147 km under the 1 mm cap); a point beyond
+//! is a write error.
 //!
 //! # Noise flag
 //!
@@ -91,6 +96,15 @@
 //!
 //! The sink writes through an [`AtomicFile`] (temporary file, renamed at [`Sink::finish`] after
 //! the announced count is checked): nothing is left behind on error.
+//!
+//! [`SourceInfo::schema`]: crate::io::SourceInfo::schema
+//! [`PointBatch::positions`]: crate::points::PointBatch::positions
+//! [`Meta::Las`]: crate::io::Meta::Las
+//! [`Meta::None`]: crate::io::Meta::None
+//! [`SinkOptions::noise_flag`]: crate::io::SinkOptions::noise_flag
+//! [`FLAG_NOISE`]: crate::points::FLAG_NOISE
+//! [`AtomicFile`]: crate::io::AtomicFile
+//! [`Sink::finish`]: crate::io::Sink::finish
 
 mod layout;
 mod sink;

@@ -504,3 +504,107 @@ impl Source for LasSource {
         })
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::io::las::LasSink;
+    use crate::io::{Cloud, Sink, SinkOptions};
+
+    /// A LAS 1.0 file by hand: PDRF 0, no VLR, the 1.0 point data start signature, two points.
+    fn las_1_0() -> Vec<u8> {
+        let mut h = vec![0u8; 227];
+        h[..4].copy_from_slice(b"LASF");
+        h[24] = 1;
+        h[25] = 0;
+        h[26..33].copy_from_slice(b"OLD ONE");
+        h[94..96].copy_from_slice(&227u16.to_le_bytes());
+        h[96..100].copy_from_slice(&229u32.to_le_bytes());
+        h[104] = 0;
+        h[105..107].copy_from_slice(&20u16.to_le_bytes());
+        h[107..111].copy_from_slice(&2u32.to_le_bytes());
+        h[111..115].copy_from_slice(&2u32.to_le_bytes()); // two first returns
+        for a in 0..3 {
+            h[131 + 8 * a..139 + 8 * a].copy_from_slice(&0.5f64.to_le_bytes());
+            h[155 + 8 * a..163 + 8 * a].copy_from_slice(&(100.0 * a as f64).to_le_bytes());
+        }
+        // max x, min x, max y, min y, max z, min z of X = (2, -4), Y = (6, 6), Z = (0, 1).
+        for (k, v) in [1.0, -2.0, 103.0, 103.0, 200.5, 200.0].iter().enumerate() {
+            h[179 + 8 * k..187 + 8 * k].copy_from_slice(&f64::to_le_bytes(*v));
+        }
+        h.extend_from_slice(&[0xdd, 0xcc]);
+        for (x, y, z) in [(2i32, 6i32, 0i32), (-4, 6, 1)] {
+            let mut r = [0u8; 20];
+            r[..4].copy_from_slice(&x.to_le_bytes());
+            r[4..8].copy_from_slice(&y.to_le_bytes());
+            r[8..12].copy_from_slice(&z.to_le_bytes());
+            r[12] = 77; // intensity
+            r[14] = 0b0000_1001; // return 1 of 1
+            r[15] = 2 | 0x20; // ground, synthetic
+            h.extend_from_slice(&r);
+        }
+        h
+    }
+
+    #[test]
+    fn las_1_0_reads_and_writes_back_identically() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("old.las");
+        std::fs::write(&p, las_1_0()).unwrap();
+        let c = Cloud::read(&p, None).unwrap();
+        assert_eq!(
+            c.positions,
+            [
+                DVec3::new(1.0, 103.0, 200.0),
+                DVec3::new(-2.0, 103.0, 200.5)
+            ]
+        );
+        let Meta::Las(m) = &c.info.meta else { panic!() };
+        assert_eq!(
+            (m.version(), m.point_format(), m.vlr_padding()),
+            ((1, 0), 0, &[0xdd, 0xcc][..])
+        );
+        let s = &c.info.schema;
+        assert_eq!(
+            s.get_f64(&c.records, s.field_index("intensity").unwrap()),
+            77.0
+        );
+        let q = dir.path().join("copy.las");
+        c.write(&q, None).unwrap();
+        assert_eq!(std::fs::read(&q).unwrap(), las_1_0());
+
+        // The noise flag keeps the synthetic bit of a PDRF 0 record.
+        let mut sink = LasSink::create(&q, &c.info, 2, &SinkOptions { noise_flag: true }).unwrap();
+        let mut batch = PointBatch::with_capacity(20, 2);
+        batch.positions.extend_from_slice(&c.positions);
+        batch.records.extend_from_slice(&c.records);
+        batch.flags = vec![0, crate::points::FLAG_NOISE];
+        sink.write_batch(&batch).unwrap();
+        Box::new(sink).finish(&Extras::default()).unwrap();
+        let out = std::fs::read(&q).unwrap();
+        assert_eq!((out[229 + 15], out[249 + 15]), (0x22, 0x27));
+    }
+
+    #[test]
+    fn a_tail_is_split_into_bytes_and_evlrs() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("t.bin");
+        let mut b = vec![9u8; 10];
+        b.extend(layout::vlr_bytes("me", 3, "d", b"payload", true));
+        b.extend_from_slice(b"end");
+        std::fs::write(&p, &b).unwrap();
+        let mut f = File::open(&p).unwrap();
+        let size = b.len() as u64;
+        let plan = plan_tail(&p, &mut f, size, 4, Some((10, 1))).unwrap();
+        assert_eq!(plan, [(4, 6, false), (10, 67, true), (77, 3, false)]);
+        assert!(
+            plan_tail(&p, &mut f, size, 4, Some((10, 2))).is_err(),
+            "second EVLR missing"
+        );
+        assert!(
+            plan_tail(&p, &mut f, size, 12, Some((10, 1))).is_err(),
+            "EVLR before the tail"
+        );
+        assert_eq!(plan_tail(&p, &mut f, size, size, None).unwrap(), []);
+    }
+}
