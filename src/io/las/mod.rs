@@ -290,7 +290,9 @@ impl Piece {
     }
 }
 
-/// What follows the point data: the EVLRs (and any bytes around them), verbatim.
+/// What follows the point data: the EVLRs (and any bytes around them), verbatim. They are read
+/// into memory by [`Source::finish`](crate::io::Source::finish) (EVLRs are metadata; an internal
+/// waveform data packet record would be held too).
 #[derive(Debug, Clone, Default)]
 pub struct LasTrailer {
     /// File offset of the first piece in the source.
