@@ -19,6 +19,7 @@
 //! One backend per format lives in its own module; this module only dispatches.
 
 pub mod kitti;
+pub mod las;
 pub mod obj;
 pub mod off;
 pub mod pcd;
@@ -26,7 +27,7 @@ pub mod ply;
 pub mod text;
 
 use std::fs::File;
-use std::io::{BufWriter, Write};
+use std::io::{BufWriter, Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
 
 use glam::DVec3;
@@ -147,9 +148,11 @@ pub enum Format {
     Kitti,
     /// Point Cloud Library PCD (ascii, binary, binary_compressed).
     Pcd,
+    /// ASPRS LAS (`.las`), LAZ (`.laz`, compressed) and COPC (`.copc.laz`, read as LAZ).
+    Las,
 }
 
-const KNOWN: &str = ".ply, .obj, .off, .xyz, .txt, .pts, .bin, .pcd";
+const KNOWN: &str = ".ply, .obj, .off, .xyz, .txt, .pts, .bin, .pcd, .las, .laz";
 
 impl Format {
     /// Tells the format from a file extension (case-insensitive).
@@ -170,7 +173,7 @@ impl Format {
     }
 
     /// Parses a format name or extension (`ply`, `obj`, `off`, `xyz`, `txt`, `pts`, `bin`,
-    /// `kitti`, `pcd`).
+    /// `kitti`, `pcd`, `las`, `laz`).
     pub fn from_name(name: &str) -> Option<Format> {
         match name.to_ascii_lowercase().as_str() {
             "ply" => Some(Format::Ply),
@@ -180,6 +183,7 @@ impl Format {
             "pts" => Some(Format::Pts),
             "bin" | "kitti" => Some(Format::Kitti),
             "pcd" => Some(Format::Pcd),
+            "las" | "laz" => Some(Format::Las),
             _ => None,
         }
     }
@@ -194,6 +198,7 @@ impl Format {
             Format::Pts => "pts",
             Format::Kitti => "bin",
             Format::Pcd => "pcd",
+            Format::Las => "las",
         }
     }
 }
@@ -215,6 +220,8 @@ pub enum Meta {
     Text(text::TextMeta),
     /// PCD header (raw lines, fields, organization, DATA kind).
     Pcd(pcd::PcdMeta),
+    /// LAS public header and VLRs.
+    Las(las::LasMeta),
 }
 
 /// What a source says about its file before any point is read.
@@ -279,6 +286,8 @@ pub enum Trailer {
     Text(text::TextTrailer),
     /// PCD bytes after the point data.
     Pcd(pcd::PcdTrailer),
+    /// LAS EVLRs after the points.
+    Las(las::LasTrailer),
 }
 
 /// Everything a file holds besides its points.
@@ -351,6 +360,7 @@ pub fn open(path: &Path, format: Option<Format>) -> Result<Box<dyn Source>, IoEr
         Format::Pts => Box::new(text::TextSource::open(path, text::TextFlavor::Pts)?),
         Format::Kitti => Box::new(kitti::KittiSource::open(path)?),
         Format::Pcd => Box::new(pcd::PcdSource::open(path)?),
+        Format::Las => Box::new(las::LasSource::open(path)?),
     })
 }
 
@@ -393,7 +403,7 @@ pub fn create_with(
         Some(f) => f,
         None => Format::from_path(path)?,
     };
-    if options.noise_flag && !matches!(format, Format::Pcd) {
+    if options.noise_flag && !matches!(format, Format::Pcd | Format::Las) {
         return Err(IoError::Unsupported {
             path: path.to_path_buf(),
             detail: format!("{} output cannot carry a noise flag", format.name()),
@@ -417,6 +427,7 @@ pub fn create_with(
         )?),
         Format::Kitti => Box::new(kitti::KittiSink::create(path, like, count)?),
         Format::Pcd => Box::new(pcd::PcdSink::create(path, like, count, options)?),
+        Format::Las => Box::new(las::LasSink::create(path, like, count, options)?),
     })
 }
 
@@ -497,6 +508,13 @@ impl AtomicFile {
     /// Wraps an OS error with the target path.
     pub fn err(&self, e: std::io::Error) -> IoError {
         IoError::io(&self.target, e)
+    }
+}
+
+/// Seeking flushes the buffer first; backends that patch a header after the data (LAS) use it.
+impl Seek for AtomicFile {
+    fn seek(&mut self, pos: SeekFrom) -> std::io::Result<u64> {
+        self.tmp.seek(pos)
     }
 }
 

@@ -1,0 +1,641 @@
+//! The streaming LAS/LAZ writer.
+
+use std::io::{Seek, SeekFrom, Write};
+use std::panic::{AssertUnwindSafe, catch_unwind};
+use std::path::{Path, PathBuf};
+
+use glam::DVec3;
+use laz::{LasZipCompressor, LazVlr, LazVlrBuilder};
+
+use super::layout::{
+    self, BASE_LEN, VLR_HEADER, at, classification_byte, get_f64, get_i32, get_u16, get_u32,
+    get_u64, is_extended, put, return_number, vlr_bytes,
+};
+use super::{LASZIP_RECORD, LASZIP_USER, LAZ_CHUNK_SIZE, LasMeta, LasVlr, Piece, laz_error};
+use crate::io::text::{Tally, check_batch};
+use crate::io::{AtomicFile, Extras, IoError, Meta, Sink, SinkOptions, SourceInfo, Trailer};
+use crate::points::{Endian, FLAG_NOISE, PointBatch, Schema};
+
+/// Where the points go: straight to the file, or through a LAZ compressor.
+enum Out {
+    Plain(AtomicFile),
+    Laz(Box<LasZipCompressor<'static, AtomicFile>>),
+}
+
+/// How records of the source become LAS records.
+enum Conv {
+    /// The source record is a LAS record of this layout: copy it, rewrite X, Y, Z.
+    Same,
+    /// Another layout: a fresh PDRF 6 record; `(source field, target offset)` per extra field.
+    Foreign(Vec<(usize, usize)>),
+}
+
+/// What a sink writes before the points, and how.
+struct Plan {
+    /// Public header block (counts, bounds and offsets patched at the end).
+    header: Vec<u8>,
+    /// VLRs and the bytes up to the point data.
+    vlrs: Vec<u8>,
+    /// Number of VLRs in `vlrs`.
+    vlr_count: u32,
+    conv: Conv,
+    /// Scale and offset, unless chosen from the first batch.
+    frame: Option<Frame>,
+    /// Fill the legacy 32-bit counts.
+    legacy: bool,
+    /// The LASzip VLR of compressed output.
+    laz: Option<LazVlr>,
+}
+
+/// Scale and offset of X, Y, Z.
+#[derive(Debug, Clone, Copy)]
+struct Frame {
+    scale: [f64; 3],
+    offset: [f64; 3],
+}
+
+/// Streaming LAS/LAZ writer.
+pub struct LasSink {
+    out: Out,
+    target: PathBuf,
+    header: Vec<u8>,
+    minor: u8,
+    format: u8,
+    record_len: usize,
+    frame: Option<Frame>,
+    conv: Conv,
+    like: Schema,
+    /// Fill the legacy (32-bit) point counts.
+    legacy: bool,
+    noise: bool,
+    /// Start of the waveform data packet record in the source (0 if none).
+    source_waveform: u64,
+    tally: Tally,
+    by_return: [u64; 15],
+    min: [i32; 3],
+    max: [i32; 3],
+    buf: Vec<u8>,
+    /// A write failed; the file is unusable.
+    failed: bool,
+}
+
+/// Returns the LASzip VLR payload `laz` can compress with: the source's (with a variable chunk
+/// size made fixed), or `None` when it cannot.
+fn reusable_laszip(vlr: &LasVlr) -> Option<(Vec<u8>, LazVlr)> {
+    let mut raw = vlr.raw.clone();
+    let d = VLR_HEADER;
+    if raw.len() < d + 16 {
+        return None;
+    }
+    let chunk = get_u32(&raw, d + 12);
+    if chunk == 0 || chunk == u32::MAX {
+        put(&mut raw, d + 12, &LAZ_CHUNK_SIZE.to_le_bytes());
+    }
+    let parsed = catch_unwind(|| LazVlr::from_buffer(&raw[d..]).ok()).ok()??;
+    let usable = catch_unwind(|| {
+        LasZipCompressor::new(std::io::Cursor::new(Vec::<u8>::new()), parsed.clone()).is_ok()
+    })
+    .unwrap_or(false);
+    usable.then_some((raw, parsed))
+}
+
+/// A new LASzip VLR for `format` with `extra` extra bytes.
+fn new_laszip(path: &Path, format: u8, extra: usize) -> Result<(Vec<u8>, LazVlr), IoError> {
+    let unsupported = |e: String| IoError::Unsupported {
+        path: path.to_path_buf(),
+        detail: format!("LAZ compression of point format {format}: {e}"),
+    };
+    let extra = u16::try_from(extra).map_err(|e| unsupported(e.to_string()))?;
+    let vlr = LazVlrBuilder::default()
+        .with_point_format(format, extra)
+        .map_err(|e| unsupported(e.to_string()))?
+        .build();
+    let mut data = Vec::new();
+    vlr.write_to(&mut data).map_err(|e| IoError::io(path, e))?;
+    Ok((
+        vlr_bytes(
+            LASZIP_USER,
+            LASZIP_RECORD,
+            LazVlr::DESCRIPTION,
+            &data,
+            false,
+        ),
+        vlr,
+    ))
+}
+
+/// Today's (day of year, year), UTC.
+fn today() -> (u16, u16) {
+    let mut days = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_secs() / 86_400);
+    let mut year = 1970u64;
+    loop {
+        let leap =
+            (year.is_multiple_of(4) && !year.is_multiple_of(100)) || year.is_multiple_of(400);
+        let len = if leap { 366 } else { 365 };
+        if days < len {
+            break;
+        }
+        days -= len;
+        year += 1;
+    }
+    (days as u16 + 1, year as u16)
+}
+
+/// `10^k` computed exactly for small `k`.
+fn pow10(k: i32) -> f64 {
+    if k >= 0 {
+        10f64.powi(k)
+    } else {
+        1.0 / 10f64.powi(-k)
+    }
+}
+
+/// The frame of a fresh file, from the positions of its first batch (see the module docs).
+fn choose_frame(positions: &[DVec3]) -> Frame {
+    let mut lo = DVec3::splat(f64::INFINITY);
+    let mut hi = DVec3::splat(f64::NEG_INFINITY);
+    for p in positions.iter().filter(|p| p.is_finite()) {
+        lo = lo.min(*p);
+        hi = hi.max(*p);
+    }
+    if lo.x > hi.x {
+        return Frame {
+            scale: [0.001; 3],
+            offset: [0.0; 3],
+        };
+    }
+    let extent = (hi - lo).max_element();
+    let k = if extent > 0.0 {
+        (extent.log10().ceil() as i32 - 6).clamp(-9, -3)
+    } else {
+        -3
+    };
+    let scale = pow10(k);
+    let unit = pow10(k + 6);
+    let round_down = |v: f64| {
+        if unit >= 1.0 {
+            (v / unit).floor() * unit
+        } else {
+            let inv = (1.0 / unit).round();
+            (v * inv).floor() / inv
+        }
+    };
+    Frame {
+        scale: [scale; 3],
+        offset: [round_down(lo.x), round_down(lo.y), round_down(lo.z)],
+    }
+}
+
+/// Quantises coordinate `v` with `scale` and `offset`: `round((v − offset)/scale)`.
+fn quantise(v: f64, scale: f64, offset: f64) -> Option<i32> {
+    let q = ((v - offset) / scale).round();
+    (q.is_finite() && q >= f64::from(i32::MIN) && q <= f64::from(i32::MAX)).then_some(q as i32)
+}
+
+impl LasSink {
+    /// Creates a sink that writes `count` points laid out like `like`; see the module docs for what
+    /// is kept and how a non-LAS source is written. `.laz` in `path` means compressed output.
+    ///
+    /// # Errors
+    /// The directory is not writable; more than 2³²−1 points for a LAS version below 1.4; a point
+    /// format `laz` cannot compress.
+    pub fn create(
+        path: &Path,
+        like: &SourceInfo,
+        count: u64,
+        options: &SinkOptions,
+    ) -> Result<LasSink, IoError> {
+        let source = match &like.meta {
+            Meta::Las(m) if m.record_len == like.schema.record_len => Some(m),
+            _ => None,
+        };
+        let compress = match path
+            .extension()
+            .and_then(|e| e.to_str())
+            .map(str::to_ascii_lowercase)
+            .as_deref()
+        {
+            Some("laz") => true,
+            Some("las") => false,
+            _ => source.is_some_and(|m| m.compressed),
+        };
+        let Plan {
+            mut header,
+            vlrs: vlr_block,
+            vlr_count,
+            conv,
+            frame,
+            legacy,
+            laz,
+        } = match source {
+            Some(m) => Self::like_las(path, m, compress)?,
+            None => Self::fresh(path, &like.schema, compress)?,
+        };
+        let minor = header[at::VERSION + 1];
+        let format = header[at::FORMAT] & 0x3f;
+        let record_len = usize::from(get_u16(&header, at::RECORD_LEN));
+        if minor < 4 && count > u64::from(u32::MAX) {
+            return Err(IoError::Unsupported {
+                path: path.to_path_buf(),
+                detail: format!("{count} points need LAS 1.4 (the source is LAS 1.{minor})"),
+            });
+        }
+        let data_start = header.len() + vlr_block.len();
+        let data_start32 = u32::try_from(data_start).map_err(|_| {
+            IoError::invalid(path, "the VLRs exceed the 4 GiB a LAS header can address")
+        })?;
+        put(&mut header, at::POINT_DATA, &data_start32.to_le_bytes());
+        put(&mut header, at::VLR_COUNT, &vlr_count.to_le_bytes());
+        let source_waveform = match source {
+            Some(m) if m.version.1 >= 3 => get_u64(&m.header, at::WAVEFORM),
+            _ => 0,
+        };
+
+        let mut file = AtomicFile::create(path)?;
+        file.write_all(&header).map_err(|e| file.err(e))?;
+        file.write_all(&vlr_block).map_err(|e| file.err(e))?;
+        let out = match laz {
+            Some(vlr) => Out::Laz(Box::new(
+                LasZipCompressor::new(file, vlr).map_err(|e| laz_error(path, e))?,
+            )),
+            None => Out::Plain(file),
+        };
+        Ok(LasSink {
+            out,
+            target: path.to_path_buf(),
+            header,
+            minor,
+            format,
+            record_len,
+            frame,
+            conv,
+            like: like.schema.clone(),
+            legacy,
+            noise: options.noise_flag,
+            source_waveform,
+            tally: Tally::new(count),
+            by_return: [0; 15],
+            min: [i32::MAX; 3],
+            max: [i32::MIN; 3],
+            buf: Vec::new(),
+            failed: false,
+        })
+    }
+
+    /// The plan for a LAS source: its header and VLRs.
+    fn like_las(path: &Path, m: &LasMeta, compress: bool) -> Result<Plan, IoError> {
+        let mut header = m.header.clone();
+        let mut block = Vec::new();
+        let mut n = 0u32;
+        let mut laz = None;
+        for v in m.vlrs.iter().filter(|v| !v.is_copc_layout()) {
+            if v.is_laszip() {
+                if compress
+                    && laz.is_none()
+                    && let Some((raw, vlr)) = reusable_laszip(v)
+                {
+                    block.extend_from_slice(&raw);
+                    n += 1;
+                    laz = Some(vlr);
+                }
+                continue;
+            }
+            block.extend_from_slice(&v.raw);
+            n += 1;
+        }
+        if compress && laz.is_none() {
+            let (raw, vlr) = new_laszip(path, m.format, m.extra_bytes())?;
+            block.extend_from_slice(&raw);
+            n += 1;
+            laz = Some(vlr);
+        }
+        block.extend_from_slice(&m.vlr_padding);
+        header[at::FORMAT] = match (compress, m.compressed) {
+            (true, true) | (false, false) => header[at::FORMAT],
+            (true, false) => m.format | 0x80,
+            (false, true) => m.format,
+        };
+        let legacy = m.version.1 < 4 || get_u32(&m.header, at::LEGACY_COUNT) != 0 || m.count == 0;
+        let frame = Frame {
+            scale: m.scale,
+            offset: m.offset,
+        };
+        Ok(Plan {
+            header,
+            vlrs: block,
+            vlr_count: n,
+            conv: Conv::Same,
+            frame: Some(frame),
+            legacy,
+            laz,
+        })
+    }
+
+    /// The plan for a source of another format: LAS 1.4 PDRF 6 plus one extra field per non-xyz
+    /// field of `schema`.
+    fn fresh(path: &Path, schema: &Schema, compress: bool) -> Result<Plan, IoError> {
+        let format = 6u8;
+        let base = BASE_LEN[6];
+        let mut extras = Vec::new();
+        let mut descriptors = Vec::new();
+        let mut at_ = base;
+        for (i, f) in schema.fields.iter().enumerate() {
+            if schema.xyz.contains(&i) {
+                continue;
+            }
+            extras.push((i, at_));
+            descriptors.extend_from_slice(&layout::extra_descriptor(&f.name, f.ty));
+            at_ += f.ty.size();
+        }
+        let record_len = u16::try_from(at_).map_err(|_| IoError::Unsupported {
+            path: path.to_path_buf(),
+            detail: format!("a {at_}-byte LAS point record (the limit is 65535)"),
+        })?;
+        let mut block = Vec::new();
+        let mut n = 0u32;
+        if !descriptors.is_empty() {
+            if descriptors.len() > usize::from(u16::MAX) {
+                return Err(IoError::Unsupported {
+                    path: path.to_path_buf(),
+                    detail: format!("{} extra fields in one Extra Bytes VLR", extras.len()),
+                });
+            }
+            block.extend(vlr_bytes(
+                "LASF_Spec",
+                4,
+                "Extra Bytes",
+                &descriptors,
+                false,
+            ));
+            n += 1;
+        }
+        let laz = if compress {
+            let (raw, vlr) = new_laszip(path, format, at_ - base)?;
+            block.extend_from_slice(&raw);
+            n += 1;
+            Some(vlr)
+        } else {
+            None
+        };
+        let mut h = vec![0u8; 375];
+        put(&mut h, 0, b"LASF");
+        put(&mut h, at::GLOBAL_ENCODING, &0x10u16.to_le_bytes());
+        h[at::VERSION] = 1;
+        h[at::VERSION + 1] = 4;
+        put(&mut h, at::SYSTEM_ID, b"OTHER");
+        let software = format!("qemd {}", env!("CARGO_PKG_VERSION"));
+        put(
+            &mut h,
+            at::SOFTWARE,
+            &software.as_bytes()[..software.len().min(32)],
+        );
+        let (day, year) = today();
+        put(&mut h, at::DAY, &day.to_le_bytes());
+        put(&mut h, at::DAY + 2, &year.to_le_bytes());
+        put(&mut h, at::HEADER_SIZE, &375u16.to_le_bytes());
+        h[at::FORMAT] = if compress { format | 0x80 } else { format };
+        put(&mut h, at::RECORD_LEN, &record_len.to_le_bytes());
+        for a in 0..3 {
+            put(&mut h, at::SCALE + 8 * a, &0.001f64.to_le_bytes());
+        }
+        Ok(Plan {
+            header: h,
+            vlrs: block,
+            vlr_count: n,
+            conv: Conv::Foreign(extras),
+            frame: None,
+            legacy: false,
+            laz,
+        })
+    }
+
+    /// The output file, with the compressor (if any) finished.
+    fn into_file(out: Out, path: &Path) -> Result<AtomicFile, IoError> {
+        match out {
+            Out::Plain(f) => Ok(f),
+            Out::Laz(mut c) => {
+                catch_unwind(AssertUnwindSafe(|| c.done()))
+                    .unwrap_or_else(|_| Err(std::io::Error::other("the LAZ compressor failed")))
+                    .map_err(|e| IoError::io(path, e))?;
+                Ok(c.into_inner())
+            }
+        }
+    }
+}
+
+impl Sink for LasSink {
+    fn write_batch(&mut self, batch: &PointBatch) -> Result<(), IoError> {
+        if self.failed {
+            return Err(IoError::invalid(&self.target, "an earlier write failed"));
+        }
+        check_batch(&self.target, &self.like, batch)?;
+        let first = self.tally.written();
+        self.tally.add(&self.target, batch.len())?;
+        if batch.is_empty() {
+            return Ok(());
+        }
+        let frame = *self
+            .frame
+            .get_or_insert_with(|| choose_frame(&batch.positions));
+        let rl = self.record_len;
+        let class_at = classification_byte(self.format);
+        self.buf.clear();
+        for (i, &p) in batch.positions.iter().enumerate() {
+            let start = self.buf.len();
+            let src = batch.record(i);
+            match &self.conv {
+                Conv::Same => self.buf.extend_from_slice(src),
+                Conv::Foreign(extras) => {
+                    self.buf.resize(start + rl, 0);
+                    for &(f, to) in extras {
+                        let field = &self.like.fields[f];
+                        let n = field.ty.size();
+                        let dst = &mut self.buf[start + to..start + to + n];
+                        dst.copy_from_slice(&src[field.offset..field.offset + n]);
+                        if self.like.endian == Endian::Big {
+                            dst.reverse();
+                        }
+                    }
+                }
+            }
+            let rec = &mut self.buf[start..start + rl];
+            for (axis, v) in p.to_array().into_iter().enumerate() {
+                let (s, o) = (frame.scale[axis], frame.offset[axis]);
+                let old = get_i32(rec, 4 * axis);
+                let keep = matches!(self.conv, Conv::Same)
+                    && (f64::from(old) * s + o).to_bits() == v.to_bits();
+                let q = if keep {
+                    old
+                } else {
+                    quantise(v, s, o).ok_or_else(|| {
+                        let name = ["x", "y", "z"][axis];
+                        IoError::invalid(
+                            &self.target,
+                            format!(
+                                "point {}: {name} = {v} cannot be stored with scale {s} and \
+                                 offset {o} (not finite or outside the 32-bit range)",
+                                first + i as u64
+                            ),
+                        )
+                    })?
+                };
+                put(rec, 4 * axis, &q.to_le_bytes());
+                self.min[axis] = self.min[axis].min(q);
+                self.max[axis] = self.max[axis].max(q);
+            }
+            if self.noise && batch.flag(i) & FLAG_NOISE != 0 {
+                rec[class_at] = if is_extended(self.format) {
+                    7
+                } else {
+                    (rec[class_at] & 0xe0) | 7
+                };
+            }
+            let r = return_number(self.format, rec);
+            if (1..=15).contains(&r) {
+                self.by_return[r - 1] += 1;
+            }
+        }
+        let buf = &self.buf;
+        let r = match &mut self.out {
+            Out::Plain(f) => f.write_all(buf),
+            Out::Laz(c) => catch_unwind(AssertUnwindSafe(|| c.compress_many(buf)))
+                .unwrap_or_else(|_| Err(std::io::Error::other("the LAZ compressor failed"))),
+        };
+        r.map_err(|e| {
+            self.failed = true;
+            IoError::io(&self.target, e)
+        })
+    }
+
+    fn finish(self: Box<Self>, extras: &Extras) -> Result<(), IoError> {
+        let this = *self;
+        if this.failed {
+            return Err(IoError::invalid(&this.target, "an earlier write failed"));
+        }
+        this.tally.check(&this.target)?;
+        let path = this.target.clone();
+        let io = |e| IoError::io(&path, e);
+        let mut file = Self::into_file(this.out, &path)?;
+        let mut h = this.header;
+        let mut pos = file.seek(SeekFrom::End(0)).map_err(io)?;
+
+        // What follows the points, with the source offsets mapped to the new ones.
+        let mut first_evlr = 0u64;
+        let mut evlrs = 0u32;
+        let mut waveform = 0u64;
+        if let Trailer::Las(t) = &extras.trailer {
+            let mut old = t.start;
+            for piece in &t.pieces {
+                let len = piece.len();
+                let keep = match piece {
+                    Piece::Evlr(v) => !v.is_copc_layout(),
+                    Piece::Bytes(_) => true,
+                };
+                if keep {
+                    if (old..old + len).contains(&this.source_waveform) {
+                        waveform = pos + (this.source_waveform - old);
+                    }
+                    match piece {
+                        Piece::Evlr(v) => {
+                            if evlrs == 0 {
+                                first_evlr = pos;
+                            }
+                            evlrs += 1;
+                            file.write_all(&v.raw).map_err(io)?;
+                        }
+                        Piece::Bytes(b) => file.write_all(b).map_err(io)?,
+                    }
+                    pos += len;
+                }
+                old += len;
+            }
+        }
+
+        let n = this.tally.written();
+        let legacy = this.legacy && n <= u64::from(u32::MAX);
+        put(
+            &mut h,
+            at::LEGACY_COUNT,
+            &(if legacy { n as u32 } else { 0 }).to_le_bytes(),
+        );
+        for r in 0..5 {
+            let v = if legacy { this.by_return[r] as u32 } else { 0 };
+            put(&mut h, at::LEGACY_BY_RETURN + 4 * r, &v.to_le_bytes());
+        }
+        let frame = this.frame.unwrap_or(Frame {
+            scale: [
+                get_f64(&h, at::SCALE),
+                get_f64(&h, at::SCALE + 8),
+                get_f64(&h, at::SCALE + 16),
+            ],
+            offset: [
+                get_f64(&h, at::OFFSET),
+                get_f64(&h, at::OFFSET + 8),
+                get_f64(&h, at::OFFSET + 16),
+            ],
+        });
+        for a in 0..3 {
+            put(&mut h, at::SCALE + 8 * a, &frame.scale[a].to_le_bytes());
+            put(&mut h, at::OFFSET + 8 * a, &frame.offset[a].to_le_bytes());
+            let (lo, hi) = if n == 0 {
+                (0.0, 0.0)
+            } else {
+                (
+                    f64::from(this.min[a]) * frame.scale[a] + frame.offset[a],
+                    f64::from(this.max[a]) * frame.scale[a] + frame.offset[a],
+                )
+            };
+            put(&mut h, at::BOUNDS + 16 * a, &hi.to_le_bytes());
+            put(&mut h, at::BOUNDS + 16 * a + 8, &lo.to_le_bytes());
+        }
+        if this.minor >= 3 {
+            put(&mut h, at::WAVEFORM, &waveform.to_le_bytes());
+        }
+        if this.minor >= 4 {
+            put(&mut h, at::FIRST_EVLR, &first_evlr.to_le_bytes());
+            put(&mut h, at::EVLR_COUNT, &evlrs.to_le_bytes());
+            put(&mut h, at::COUNT, &n.to_le_bytes());
+            for r in 0..15 {
+                put(
+                    &mut h,
+                    at::BY_RETURN + 8 * r,
+                    &this.by_return[r].to_le_bytes(),
+                );
+            }
+        }
+        file.seek(SeekFrom::Start(0)).map_err(io)?;
+        file.write_all(&h).map_err(io)?;
+        file.commit()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn frame_for_utm_and_small_objects() {
+        let f = choose_frame(&[
+            DVec3::new(500_123.456, 5_000_321.5, 101.25),
+            DVec3::new(500_923.456, 5_000_921.5, 140.0),
+        ]);
+        assert_eq!(f.scale, [0.001; 3]);
+        assert_eq!(f.offset, [500_000.0, 5_000_000.0, 0.0]);
+        let f = choose_frame(&[DVec3::new(-0.07, 0.03, 0.1), DVec3::new(0.08, 0.18, 0.2)]);
+        assert_eq!(f.scale, [1e-6; 3]);
+        assert_eq!(f.offset, [-1.0, 0.0, 0.0]);
+        let f = choose_frame(&[DVec3::new(3.25, 4.0, 5.0)]);
+        assert_eq!(f.scale, [0.001; 3]);
+        assert_eq!(quantise(1e300, 0.001, 0.0), None);
+        assert_eq!(quantise(f64::NAN, 0.001, 0.0), None);
+        assert_eq!(quantise(500_000.001, 0.001, 500_000.0), Some(1));
+    }
+
+    #[test]
+    fn today_is_plausible() {
+        let (day, year) = today();
+        assert!((1..=366).contains(&day) && year >= 2024, "{day} {year}");
+    }
+}
