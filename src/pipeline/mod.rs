@@ -700,10 +700,20 @@ fn run_tiled(
     let (mut sum, mut sq) = (ExactSum::new(), ExactSum::new());
     let mut growths = 0u64;
     let mut empty = 0u64;
+    // The next tile's spill file is read on a helper thread while the current one computes.
+    let mut ahead = Some(tiling::load_tile(dir.path(), &plan, 0).map_err(tiling_err)?);
     for t in 0..plan.tiles.len() {
         cancelled(opts)?;
-        let o = tiling::process_tile(dir.path(), &plan, t, &job.params, &globals)
-            .map_err(tiling_err)?;
+        let pts = ahead.take();
+        let (o, next) = std::thread::scope(|s| {
+            let reader = (t + 1 < plan.tiles.len())
+                .then(|| s.spawn(|| tiling::load_tile(dir.path(), &plan, t + 1)));
+            let o = tiling::process_tile(dir.path(), &plan, t, &job.params, &globals, pts);
+            let next = reader.map(|h| h.join().expect("the spill reader does not panic"));
+            (o, next)
+        });
+        let o = o.map_err(tiling_err)?;
+        ahead = next.transpose().map_err(tiling_err)?;
         stats.merge(&o.stats);
         sum.merge(&o.knn_mean.0);
         sq.merge(&o.knn_mean.1);

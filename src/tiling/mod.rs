@@ -98,6 +98,15 @@ pub struct TileOutcome {
 /// Largest halo tried, relative to the bounding-box diagonal, before giving up.
 const MAX_HALO_FRACTION: f64 = 1.0;
 
+/// Loads the points of tile `t` for the plan's halo: its spill file (owned points plus halo
+/// copies). Callers may run this ahead of [`process_tile`] to overlap reading with computing.
+///
+/// # Errors
+/// Spill read failures.
+pub fn load_tile(dir: &Path, plan: &Plan, t: usize) -> Result<Vec<TilePoint>, TilingError> {
+    load(dir, plan, t, plan.halo)
+}
+
 /// Loads the points of tile `t` for `halo`: from its own spill file when `halo` is the plan's
 /// (owned points plus halo copies), otherwise the owned points of every tile near the grown box.
 fn load(dir: &Path, plan: &Plan, t: usize, halo: f64) -> Result<Vec<TilePoint>, TilingError> {
@@ -133,12 +142,16 @@ fn with_exact_halo<T>(
     dir: &Path,
     plan: &Plan,
     t: usize,
+    mut preloaded: Option<Vec<TilePoint>>,
     mut f: impl FnMut(&[TilePoint], &CloudRun) -> Result<(T, bool), TilingError>,
 ) -> Result<(T, Vec<TilePoint>, f64, u32), TilingError> {
     let mut halo = plan.halo;
     let mut growths = 0;
     loop {
-        let pts = load(dir, plan, t, halo)?;
+        let pts = match preloaded.take() {
+            Some(p) => p,
+            None => load(dir, plan, t, halo)?,
+        };
         let positions: Vec<DVec3> = pts.iter().map(|p| p.p).collect();
         let ties: Vec<u64> = pts.iter().map(|p| p.index).collect();
         let run = CloudRun {
@@ -177,7 +190,7 @@ fn with_exact_halo<T>(
 /// # Errors
 /// Spill read failures, too few points, halo limit.
 pub fn spacing_of_tile(dir: &Path, plan: &Plan, t: usize) -> Result<ExactSum, TilingError> {
-    let (sum, _, _, _) = with_exact_halo(dir, plan, t, |pts, run| {
+    let (sum, _, _, _) = with_exact_halo(dir, plan, t, None, |pts, run| {
         if pts.is_empty() {
             return Ok((ExactSum::new(), true));
         }
@@ -193,7 +206,8 @@ pub fn spacing_of_tile(dir: &Path, plan: &Plan, t: usize) -> Result<ExactSum, Ti
 }
 
 /// Processes tile `t`: runs the operator with a halo large enough for every owned result to be
-/// exact and writes the owned results to the tile's result file.
+/// exact and writes the owned results to the tile's result file. `preloaded` is the tile's
+/// [`load_tile`] result when the caller read it ahead.
 ///
 /// # Errors
 /// Spill read failures, operator errors, halo limit, result write failures.
@@ -203,8 +217,9 @@ pub fn process_tile(
     t: usize,
     params: &Params,
     globals: &Globals,
+    preloaded: Option<Vec<TilePoint>>,
 ) -> Result<TileOutcome, TilingError> {
-    let (result, pts, halo, growths) = with_exact_halo(dir, plan, t, |pts, run| {
+    let (result, pts, halo, growths) = with_exact_halo(dir, plan, t, preloaded, |pts, run| {
         if pts.is_empty() {
             return Ok((None, true));
         }

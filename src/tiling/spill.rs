@@ -208,9 +208,8 @@ pub fn write_results(dir: &Path, t: usize, results: &mut [TileResult]) -> Result
     results.par_sort_unstable_by_key(|r| r.index);
     let path = result_path(dir, t);
     let mut f = AtomicFile::create(&path).map_err(|e| TilingError::Result(Box::new(e)))?;
-    for r in results.iter() {
-        f.write_all(&encode(r)).map_err(|e| err(&path, e))?;
-    }
+    let bytes: Vec<u8> = results.par_iter().flat_map_iter(encode).collect();
+    f.write_all(&bytes).map_err(|e| err(&path, e))?;
     f.commit_unsynced()
         .map_err(|e| TilingError::Result(Box::new(e)))?;
     Ok((results.len() * RESULT_RECORD) as u64)
