@@ -1,0 +1,67 @@
+#!/usr/bin/env python3
+"""Compares qemd with Open3D on the same point cloud, in one run (outside the test suite).
+
+Open3D's `estimate_normals` with k = 16 (k-d tree k-NN + PCA) is the established neighbourhood
+filter closest to qemd's point mode (k-NN + PCA + a quadric solve per point). Both run on this
+machine with the same threads; CPU seconds come from getrusage, so "per core" is points per
+CPU-second.
+
+Usage: benches/compare_open3d.sh FILE.ply [QEMD_BINARY]
+"""
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+
+
+def cpu_seconds(who):
+    r = resource.getrusage(who)
+    return r.ru_utime + r.ru_stime
+
+
+def main():
+    path = sys.argv[1]
+    qemd = sys.argv[2] if len(sys.argv) > 2 else "target/release/qemd"
+    import open3d as o3d
+
+    w0, c0 = time.perf_counter(), cpu_seconds(resource.RUSAGE_SELF)
+    pcd = o3d.io.read_point_cloud(path)
+    w1, c1 = time.perf_counter(), cpu_seconds(resource.RUSAGE_SELF)
+    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(knn=16))
+    w2, c2 = time.perf_counter(), cpu_seconds(resource.RUSAGE_SELF)
+    n = len(pcd.points)
+    del pcd
+
+    with tempfile.TemporaryDirectory() as d:
+        out = os.path.join(d, "out.ply")
+        rep = os.path.join(d, "r.json")
+        w3, c3 = time.perf_counter(), cpu_seconds(resource.RUSAGE_CHILDREN)
+        subprocess.run([qemd, "denoise", path, "-o", out, "--knn", "16", "--report", rep, "-q"],
+                       check=True)
+        w4, c4 = time.perf_counter(), cpu_seconds(resource.RUSAGE_CHILDREN)
+        r = json.load(open(rep))
+
+    kernel = [p for p in r["phases"] if p["name"].split(".")[-1] in ("neighbours", "normals")]
+    q_nn_cpu = sum(p["cpu_s"] for p in kernel)
+    rows = [
+        ("Open3D read_point_cloud", w1 - w0, c1 - c0),
+        ("Open3D estimate_normals(knn=16)", w2 - w1, c2 - c1),
+        ("qemd denoise (read, k-NN, PCA, QEM, write)", w4 - w3, c4 - c3),
+        ("qemd k-NN + PCA phases only", None, q_nn_cpu),
+    ]
+    print(f"points: {n:,}   mode: {r['mode']}   tiles: {r['tiles']}")
+    print(f"{'step':48} {'wall s':>8} {'CPU s':>8} {'M pts/CPU-s':>12}")
+    for name, wall, cpu in rows:
+        ws = f"{wall:8.2f}" if wall is not None else f"{'':>8}"
+        print(f"{name:48} {ws} {cpu:8.2f} {n / cpu / 1e6:12.3f}")
+    print()
+    print(f"per core, k-NN + normals: qemd / Open3D = {(c2 - c1) / q_nn_cpu:.2f}x")
+    print(f"per core, qemd whole denoise vs Open3D normals alone = {(c2 - c1) / (c4 - c3):.2f}x")
+    print(f"wall, qemd whole denoise vs Open3D read + normals = {(w2 - w0) / (w4 - w3):.2f}x")
+
+
+if __name__ == "__main__":
+    main()
