@@ -676,7 +676,7 @@ mod io_las {
         // Formats without a noise flag still refuse it.
         let g = Cloud::generated(vec![DVec3::ZERO], None, ScalarType::F32);
         let e = io::create_with(
-            &dir.path().join("x.ply"),
+            &dir.path().join("x.bin"),
             None,
             &g.info,
             1,

@@ -696,7 +696,7 @@ mod io_pcd {
         let d = Cloud::read(&out, None).unwrap();
         assert!((0..6).all(|i| d.records[i * 17 + 16] == 0));
         let e = io::create_with(
-            &dir.path().join("x.ply"),
+            &dir.path().join("x.bin"),
             None,
             &c.info,
             6,

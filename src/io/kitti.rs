@@ -15,7 +15,9 @@
 //!
 //! Records of another layout are converted field by field: x, y, z from the positions and the
 //! intensity from a field named `intensity` or `reflectance` (0 when there is none). Faces
-//! cannot be stored; a sink ignores [`Extras::faces`].
+//! cannot be stored; a sink ignores [`Extras::faces`]. Nor can a noise flag: a 16-byte record has
+//! no room for one, so [`create_with`](super::create_with) refuses
+//! [`SinkOptions::noise_flag`](super::SinkOptions::noise_flag) for KITTI output.
 
 use std::fs::File;
 use std::io::{BufReader, Read, Write};

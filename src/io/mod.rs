@@ -16,6 +16,39 @@
 //! `batch.records`; they never reorder points. Sources deliver non-finite positions as they are
 //! (the caller decides whether to drop them).
 //!
+//! # Noise flag
+//!
+//! A sink created by [`create_with`] with [`SinkOptions::noise_flag`] writes each point's
+//! [`FLAG_NOISE`](crate::points::FLAG_NOISE) bit of [`PointBatch::flags`] (an empty `flags`
+//! means no point is flagged):
+//!
+//! * **LAS/LAZ**: classification 7 (noise) on flagged points; other points keep their class.
+//! * **PCD**: a last field `noise` (`SIZE 1`, `TYPE U`, `COUNT 1`) holding 0 or 1.
+//! * **PLY**: a last vertex property `property uchar noise` holding 0 or 1, in the file's
+//!   encoding (ascii or either binary one), for PLY and foreign sources alike.
+//! * **XYZ/TXT, PTS**: a last column 0 or 1 after the file's separator; a header comment naming
+//!   the columns (`//X Y Z …`, `# x y z …`) gets the name `noise`.
+//! * **KITTI**: refused, a `.bin` record has no room for it (drop outliers, or pick another
+//!   format).
+//! * **OBJ, OFF**: refused, outlier flags apply to point clouds.
+//!
+//! In PLY, PCD and text output a field, property or column already named [`NOISE_FIELD`] (a file
+//! written by an earlier run) is overwritten in place instead of a second one being added. A
+//! refused option fails in [`create_with`] with [`IoError::Unsupported`], before any file is
+//! created.
+//!
+//! # Writing another format's records
+//!
+//! When the output format differs from the source's, the PLY, PCD and text sinks lay their
+//! records out from the source's [`Schema`] (the "foreign schema" path): every field keeps its
+//! name (made valid for the format) and its type where the format has it, with one exception —
+//! **x, y and z of an integer type are promoted to `f64`** (PLY `double`, PCD `F 8`; text prints
+//! them as the shortest text that round-trips the `f64` position). LAS stores x, y, z as scaled
+//! `I32` integers; writing those as integers would round the coordinates to whole units.
+//! Positions always come from `batch.positions`, which LAS sources decode with the file's scale
+//! and offset. Float x, y, z keep their type (`f32` stays `f32`). (LAS output chooses its own
+//! scale and offset, KITTI stores `f32`, and OBJ/OFF print positions as the text sinks do.)
+//!
 //! One backend per format lives in its own module; this module only dispatches.
 
 pub mod kitti;
@@ -368,8 +401,9 @@ pub fn open(path: &Path, format: Option<Format>) -> Result<Box<dyn Source>, IoEr
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct SinkOptions {
     /// Write each point's noise flag ([`crate::points::FLAG_NOISE`] in `PointBatch::flags`):
-    /// classification 7 in LAS, an extra `noise` property (0/1) in formats that can carry one
-    /// (PCD: a `noise` field, `SIZE 1`, `TYPE U`).
+    /// classification 7 in LAS, an extra `noise` value (0/1) in the formats that can carry one
+    /// (PCD: a `noise` field, `SIZE 1`, `TYPE U`; PLY: a vertex property `uchar noise`; XYZ and
+    /// PTS: a last column). KITTI, OBJ and OFF refuse it (see the [module overview](self)).
     pub noise_flag: bool,
 }
 
@@ -391,7 +425,8 @@ pub fn create(
 /// [`create`] with options (a noise flag).
 ///
 /// # Errors
-/// As [`create`], and [`IoError::Unsupported`] for an option the format cannot carry.
+/// As [`create`], and [`IoError::Unsupported`] for an option the format cannot carry: the noise
+/// flag in KITTI (no room in a `.bin` record), OBJ or OFF (meshes) output. Nothing is created then.
 pub fn create_with(
     path: &Path,
     format: Option<Format>,
@@ -403,32 +438,59 @@ pub fn create_with(
         Some(f) => f,
         None => Format::from_path(path)?,
     };
-    if options.noise_flag && !matches!(format, Format::Pcd | Format::Las) {
-        return Err(IoError::Unsupported {
-            path: path.to_path_buf(),
-            detail: format!("{} output cannot carry a noise flag", format.name()),
-        });
+    if options.noise_flag {
+        let refuse = match format {
+            Format::Las | Format::Pcd | Format::Ply | Format::Xyz | Format::Pts => None,
+            Format::Kitti => Some(
+                "a KITTI .bin record has no room for a noise flag; use --outliers remove or \
+                 another output format",
+            ),
+            Format::Obj | Format::Off => Some("outlier flags apply to point clouds"),
+        };
+        if let Some(detail) = refuse {
+            return Err(IoError::Unsupported {
+                path: path.to_path_buf(),
+                detail: detail.to_string(),
+            });
+        }
     }
     Ok(match format {
-        Format::Ply => Box::new(ply::PlySink::create(path, like, count)?),
+        Format::Ply => Box::new(ply::PlySink::create_with(path, like, count, options)?),
         Format::Obj => Box::new(obj::ObjSink::create(path, like, count)?),
         Format::Off => Box::new(off::OffSink::create(path, like, count)?),
-        Format::Xyz => Box::new(text::TextSink::create(
+        Format::Xyz => Box::new(text::TextSink::create_with(
             path,
             text::TextFlavor::Xyz,
             like,
             count,
+            options,
         )?),
-        Format::Pts => Box::new(text::TextSink::create(
+        Format::Pts => Box::new(text::TextSink::create_with(
             path,
             text::TextFlavor::Pts,
             like,
             count,
+            options,
         )?),
         Format::Kitti => Box::new(kitti::KittiSink::create(path, like, count)?),
         Format::Pcd => Box::new(pcd::PcdSink::create(path, like, count, options)?),
         Format::Las => Box::new(las::LasSink::create(path, like, count, options)?),
     })
+}
+
+/// Name of the per-point field that carries the noise flag in PLY, PCD and text output.
+pub const NOISE_FIELD: &str = "noise";
+
+/// The type a sink gives field `i` of a record whose layout comes from *another* format: a field
+/// keeps its type, except that x, y and z stored as integers (LAS keeps scaled `I32` coordinates)
+/// become `F64`, so that decoded positions are not rounded to whole units.
+pub(crate) fn foreign_field_type(schema: &Schema, i: usize) -> ScalarType {
+    let ty = schema.fields[i].ty;
+    if schema.xyz.contains(&i) && !ty.is_float() {
+        ScalarType::F64
+    } else {
+        ty
+    }
 }
 
 /// A buffered file that appears at its target path only when committed.

@@ -28,7 +28,9 @@
 //! unchanged write reproduces the file line for line. Runs that fall between vertices are known
 //! only at [`Sink::finish`], so the vertex lines from the first such run on are held in memory
 //! until then. A sink of any other layout writes `v x y z` lines and then `f` lines (1-based) from
-//! [`Extras::faces`].
+//! [`Extras::faces`]. OBJ is a mesh format: [`create_with`](super::create_with) refuses
+//! [`SinkOptions::noise_flag`](super::SinkOptions::noise_flag) ("outlier flags apply to point
+//! clouds").
 
 use std::path::Path;
 

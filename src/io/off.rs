@@ -24,7 +24,9 @@
 //! A sink created like an OFF source writes the same header with the new vertex count, the
 //! vertex lines re-formatted (shortest round-trip text, the file's line terminator) and the
 //! trailer unchanged. A sink of any other layout writes `OFF`, the counts, `x y z` vertex lines
-//! and the faces of [`Extras::faces`].
+//! and the faces of [`Extras::faces`]. OFF is a mesh format: [`create_with`](super::create_with)
+//! refuses [`SinkOptions::noise_flag`](super::SinkOptions::noise_flag) ("outlier flags apply to
+//! point clouds").
 
 use std::path::Path;
 

@@ -26,8 +26,17 @@
 //!
 //! Numbers are written with Rust's shortest round-trip formatting (`{}`); `f32` fields of a
 //! foreign layout (KITTI, binary PLY) are written as `f32`, so a value read from a float file
-//! prints as the short decimal it came from. `nan` and `inf` are accepted and delivered as they are.
+//! prints as the short decimal it came from. Positions whose x, y, z fields are integers (LAS's
+//! scaled `I32`) print as the shortest text that round-trips the decoded `f64` position, never
+//! rounded to whole units. `nan` and `inf` are accepted and delivered as they are.
 //! Faces cannot be stored in these formats; a sink ignores [`Extras::faces`].
+//!
+//! **Noise flag.** A sink created with [`SinkOptions::noise_flag`] ([`TextSink::create_with`])
+//! appends a column to every point line, `1` for points flagged [`FLAG_NOISE`] and `0` otherwise,
+//! after the file's separator. The comment line that names the columns (`//X Y Z Intensity`,
+//! `# x,y,z`) gets `noise` in its own separator style, and the `# x y z …` line written for a
+//! foreign XYZ output lists it; without such a line only the column is added (it then reads back
+//! as `c3`, `c4`, …). A column already named `noise` is overwritten instead.
 
 use std::fs::File;
 use std::io::{BufRead, BufReader, Read, Write};
@@ -35,8 +44,11 @@ use std::path::{Path, PathBuf};
 
 use glam::DVec3;
 
-use super::{AtomicFile, Extras, Format, IoError, Meta, Sink, Source, SourceInfo, Trailer};
-use crate::points::{Endian, Field, PointBatch, ScalarType, Schema};
+use super::{
+    AtomicFile, Extras, Format, IoError, Meta, NOISE_FIELD, Sink, SinkOptions, Source, SourceInfo,
+    Trailer,
+};
+use crate::points::{Endian, FLAG_NOISE, Field, PointBatch, ScalarType, Schema};
 
 /// Line terminator of a text file.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
@@ -811,18 +823,72 @@ impl Source for TextSource {
 // ---------------------------------------------------------------------------------------------
 // Writer.
 
+/// Where a text sink writes the noise flag.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum NoiseColumn {
+    /// Nowhere (no noise flag requested).
+    Off,
+    /// Into the existing column of this schema field (a `noise` column from a previous run).
+    Field(usize),
+    /// Into a new last column.
+    Append,
+}
+
+/// `header` and `after_count` with `noise` appended to the comment line that names the `n`
+/// columns (the line [`names_from_comments`] takes the names from), when there is one. The name
+/// follows the line's own separator: `, noise` after `//X, Y, Z`, ` noise` after `# x y z`.
+fn name_noise_column(header: &[u8], after_count: &[u8], n: usize) -> (Vec<u8>, Vec<u8>) {
+    let blobs = [header, after_count];
+    let mut found = None;
+    for (b, blob) in blobs.iter().enumerate() {
+        let mut start = 0;
+        for line in blob.split_inclusive(|&c| c == b'\n') {
+            if names_from_comments(&[line], n).is_some() {
+                found = Some((b, start, start + line.len()));
+            }
+            start += line.len();
+        }
+    }
+    let mut out = blobs.map(<[u8]>::to_vec);
+    if let Some((b, start, end)) = found {
+        let (content, eol) = split_eol(&blobs[b][start..end]);
+        let body = content.trim_ascii_end().len();
+        let sep: &[u8] = match content[..body].iter().rposition(|&c| c == b',') {
+            Some(k) => {
+                let ws = content[k + 1..body]
+                    .iter()
+                    .take_while(|c| c.is_ascii_whitespace())
+                    .count();
+                &content[k..k + 1 + ws]
+            }
+            None => b" ",
+        };
+        let mut line = content[..body].to_vec();
+        line.extend_from_slice(sep);
+        line.extend_from_slice(NOISE_FIELD.as_bytes());
+        line.extend_from_slice(&content[body..]);
+        line.extend_from_slice(eol);
+        out[b].splice(start..end, line);
+    }
+    let [h, a] = out;
+    (h, a)
+}
+
 /// Streaming writer of `.xyz`, `.txt` and `.pts` point files.
 ///
 /// Like a text source it keeps the header and trailing comments, the separator and the line
 /// terminator. For any other layout it writes x, y, z and then every other field of the record,
 /// converted field by field, separated by single spaces; an XYZ file then starts with a
-/// `# x y z name…` line naming the extra columns.
+/// `# x y z name…` line naming the extra columns. Positions are printed in their field's type when
+/// it is a float, and as the shortest text that round-trips the `f64` position otherwise (integer
+/// x, y, z such as LAS's scaled `I32` are never rounded to whole units).
 pub struct TextSink {
     out: LineSink,
     schema: Schema,
     coords: [ScalarType; 3],
     fields: Vec<usize>,
     separator: String,
+    noise: NoiseColumn,
     tally: Tally,
     line: Vec<u8>,
 }
@@ -838,20 +904,56 @@ impl TextSink {
         like: &SourceInfo,
         count: u64,
     ) -> Result<TextSink, IoError> {
+        TextSink::create_with(path, flavor, like, count, &SinkOptions::default())
+    }
+
+    /// [`TextSink::create`] with options. With [`SinkOptions::noise_flag`] every point line gets
+    /// a last column, 1 for points flagged [`FLAG_NOISE`] and 0 otherwise, after the file's
+    /// separator; a header comment naming the columns (`//X Y Z …`, `# x y z …`, or the
+    /// `# x y z …` line written for another format) gets the name `noise`. When the columns
+    /// already include one named `noise` (a re-run), that column is overwritten instead.
+    ///
+    /// # Errors
+    /// The directory is not writable.
+    pub fn create_with(
+        path: &Path,
+        flavor: TextFlavor,
+        like: &SourceInfo,
+        count: u64,
+        options: &SinkOptions,
+    ) -> Result<TextSink, IoError> {
         let schema = like.schema.clone();
         let fields = extra_fields(&schema);
+        let noise = match schema.field_index(NOISE_FIELD) {
+            _ if !options.noise_flag => NoiseColumn::Off,
+            Some(i) if fields.contains(&i) => NoiseColumn::Field(i),
+            _ => NoiseColumn::Append,
+        };
         let (meta, separator, eol) = match &like.meta {
             Meta::Text(m) => (Some(m), m.separator.clone(), m.eol),
             _ => (None, " ".to_string(), LineEnding::Lf),
         };
+        let (header, after_count) = match meta {
+            Some(m) if noise == NoiseColumn::Append => {
+                name_noise_column(&m.header, &m.after_count, schema.fields.len())
+            }
+            Some(m) => (m.header.clone(), m.after_count.clone()),
+            None => (Vec::new(), Vec::new()),
+        };
         let mut out = LineSink::create(path, eol)?;
         match meta {
-            Some(m) => out.raw(&m.header)?,
-            None if flavor == TextFlavor::Xyz && !fields.is_empty() => {
+            Some(_) => out.raw(&header)?,
+            None if flavor == TextFlavor::Xyz
+                && (!fields.is_empty() || noise == NoiseColumn::Append) =>
+            {
                 let mut h = b"# x y z".to_vec();
                 for &f in &fields {
                     h.push(b' ');
                     h.extend_from_slice(schema.fields[f].name.as_bytes());
+                }
+                if noise == NoiseColumn::Append {
+                    h.push(b' ');
+                    h.extend_from_slice(NOISE_FIELD.as_bytes());
                 }
                 out.line(&h)?;
             }
@@ -860,15 +962,14 @@ impl TextSink {
         if flavor == TextFlavor::Pts {
             out.line(count.to_string().as_bytes())?;
         }
-        if let Some(m) = meta {
-            out.raw(&m.after_count)?;
-        }
+        out.raw(&after_count)?;
         Ok(TextSink {
             out,
             coords: coord_types(&schema),
             schema,
             fields,
             separator,
+            noise,
             tally: Tally::new(count),
             line: Vec::new(),
         })
@@ -889,10 +990,23 @@ impl Sink for TextSink {
                 }
                 push_value(&mut self.line, self.coords[k], v);
             }
+            let flag = if batch.flag(i) & FLAG_NOISE != 0 {
+                b'1'
+            } else {
+                b'0'
+            };
             for &f in &self.fields {
                 self.line.extend_from_slice(sep);
+                if self.noise == NoiseColumn::Field(f) {
+                    self.line.push(flag);
+                    continue;
+                }
                 let v = self.schema.get_f64(rec, f);
                 push_value(&mut self.line, self.schema.fields[f].ty, v);
+            }
+            if self.noise == NoiseColumn::Append {
+                self.line.extend_from_slice(sep);
+                self.line.push(flag);
             }
             self.out.line(&self.line)?;
         }

@@ -28,7 +28,9 @@
 //!   `DATA` kind, comments, `VERSION`, `VIEWPOINT`, `WIDTH`/`HEIGHT`). When the point count
 //!   differs from the header's, the cloud can no longer be an image: it is written unorganized,
 //!   `WIDTH count`, `HEIGHT 1`, `POINTS count`. For any other origin the sink writes a PCL-style
-//!   v0.7 header with the schema's fields and `DATA binary` (fields converted to little-endian).
+//!   v0.7 header with the schema's fields and `DATA binary` (fields converted to little-endian;
+//!   integer x, y, z — LAS's scaled `I32` — become `F 8`, written from the decoded positions, so
+//!   coordinates are not rounded to whole units).
 //!   `ascii` and `binary` stream. `binary_compressed` needs the whole column-major block before it
 //!   can compress it: the sink **buffers count × record bytes** (allocated up front, reported as an
 //!   error when it cannot be), and at `finish` compresses it (the compressed copy takes at most
@@ -79,15 +81,15 @@ use self::header::{DEFAULT_VIEWPOINT, Header};
 use super::text::{LineEnding, Tally, check_batch, show, tokens};
 use super::{
     AtomicFile, Extras, Format, IoError, Meta, Sink, SinkOptions, Source, SourceInfo, Trailer,
-    open_file,
+    foreign_field_type, open_file,
 };
 use crate::points::{Endian, FLAG_NOISE, Field, PointBatch, ScalarType, Schema};
 
 /// Read buffer size.
 const READ_BUF: usize = 1 << 16;
 
-/// Name of the field a sink appends for [`SinkOptions::noise_flag`].
-pub const NOISE_FIELD: &str = "noise";
+/// Name of the field a sink appends for [`SinkOptions::noise_flag`] (shared with PLY and text).
+pub use super::NOISE_FIELD;
 
 /// PCD header information a sink reproduces: the raw header lines and the field model.
 #[derive(Debug, Clone, Default)]
@@ -248,6 +250,17 @@ pub fn fields_of(schema: &Schema) -> Vec<PcdField> {
         i += 1;
     }
     out
+}
+
+/// `schema` with the types a PCD header gets for another format's records: integer x, y and z
+/// become `F64` (see [`foreign_field_type`]). Only names and types are meaningful in the result
+/// (offsets are not recomputed); it feeds [`fields_of`].
+fn promoted(schema: &Schema) -> Schema {
+    let mut s = schema.clone();
+    for i in schema.xyz {
+        s.fields[i].ty = foreign_field_type(schema, i);
+    }
+    s
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -608,6 +621,8 @@ pub struct PcdSink {
     /// Layout of the rows written (little-endian, packed; the noise field included).
     schema: Schema,
     conv: Conv,
+    /// x, y, z whose output type differs from the incoming one (integers written as `F64`).
+    promoted: [bool; 3],
     /// Output field receiving the noise flag.
     noise: Option<usize>,
     kind: PcdData,
@@ -648,7 +663,7 @@ impl PcdSink {
             ),
             _ => (
                 Header::generated(
-                    &fields_of(&like.schema),
+                    &fields_of(&promoted(&like.schema)),
                     count,
                     PcdData::Binary,
                     DEFAULT_VIEWPOINT,
@@ -702,6 +717,11 @@ impl PcdSink {
                 .map(|f| f.ty.size())
                 .sum::<usize>()
                 == like.schema.record_len;
+        // x, y, z promoted to `F64` are not copied but always written from the positions.
+        let promoted = like
+            .schema
+            .xyz
+            .map(|i| like.schema.fields[i].ty != schema.fields[i].ty);
         let conv = if same {
             Conv::Same
         } else {
@@ -710,6 +730,7 @@ impl PcdSink {
                     .fields
                     .iter()
                     .zip(&schema.fields)
+                    .filter(|(a, b)| a.ty == b.ty)
                     .map(|(a, b)| FieldCopy {
                         src: a.offset,
                         dst: b.offset,
@@ -757,6 +778,7 @@ impl PcdSink {
             like: like.schema.clone(),
             schema,
             conv,
+            promoted,
             noise,
             kind,
             tally: Tally::new(count),
@@ -795,7 +817,7 @@ impl PcdSink {
                 .into_iter()
                 .enumerate()
             {
-                if n.to_bits() != o.to_bits() {
+                if n.to_bits() != o.to_bits() || self.promoted[axis] {
                     self.schema.set_f64(row, self.schema.xyz[axis], n);
                 }
             }

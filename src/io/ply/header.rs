@@ -181,6 +181,45 @@ impl Header {
         }
         out
     }
+
+    /// Declares a further scalar property `name` of type `ty` as the last property of element
+    /// `e`: a `property` line goes right after the element's last `property` line (with that
+    /// line's terminator), and the element model gets the property too.
+    pub fn push_property(&mut self, e: usize, name: &str, ty: ScalarType) {
+        let start = self.element_lines[e];
+        let end = self
+            .element_lines
+            .get(e + 1)
+            .copied()
+            .unwrap_or(self.lines.len().saturating_sub(1));
+        let after = (start + 1..end)
+            .rev()
+            .find(|&l| word(&self.lines[l], 0) == Some(b"property".as_slice()))
+            .unwrap_or(start);
+        let prev = &self.lines[after];
+        let body = prev
+            .iter()
+            .rposition(|&c| c != b'\r' && c != b'\n')
+            .map_or(0, |n| n + 1);
+        let nl = match &prev[body..] {
+            b"" => self.newline.as_bytes().to_vec(),
+            t => t.to_vec(),
+        };
+        let kw = type_keyword(ty).unwrap_or("double");
+        let mut line = format!("property {kw} {name}").into_bytes();
+        line.extend_from_slice(&nl);
+        let at = after + 1;
+        self.lines.insert(at, line);
+        for l in &mut self.element_lines {
+            if *l >= at {
+                *l += 1;
+            }
+        }
+        self.elements[e].properties.push(PlyProperty {
+            name: name.to_string(),
+            ty: PlyType::Scalar(ty),
+        });
+    }
 }
 
 /// Replaces the last token (the count) of an `element` line, keeping spacing and terminator.

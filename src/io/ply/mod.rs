@@ -16,9 +16,16 @@
 //!   the last element — are kept verbatim in [`PlyTrailer`].
 //! * [`PlySink::create`] reproduces a PLY source's header byte for byte (only the vertex count, and
 //!   the face count when it changed, are rewritten) or, for any other origin, writes a
-//!   `binary_little_endian` header from the schema. [`Sink::write_batch`] copies the record slab and
-//!   patches x, y, z in place; [`Sink::finish`] writes the trailer verbatim when it matches, or the
-//!   faces generically, and only then moves the file into place.
+//!   `binary_little_endian` header from the schema, with integer x, y, z (LAS's scaled `I32`)
+//!   promoted to `double` so that coordinates are not rounded to whole units.
+//!   [`Sink::write_batch`] copies the record slab and patches x, y, z in place; [`Sink::finish`]
+//!   writes the trailer verbatim when it matches, or the faces generically, and only then moves
+//!   the file into place.
+//! * **Noise flag.** [`PlySink::create_with`] with [`SinkOptions::noise_flag`] declares one more
+//!   vertex property, `property uchar noise`, after the vertex element's last property line (the
+//!   rest of the header is kept, for PLY and foreign sources alike) and writes 1 for points whose
+//!   [`PointBatch::flags`] have [`FLAG_NOISE`], else 0, in every encoding. A vertex element that
+//!   already has a `noise` property (a re-run) keeps its header; that property is overwritten.
 //!
 //! ```text
 //!  ply / format / comment / obj_info / element … / end_header      PlyMeta (raw lines)
@@ -28,12 +35,12 @@
 //!  [trailing bytes]                                                 PlyTrailer (raw)
 //! ```
 //!
-//! Reading a file and writing it back unchanged yields a byte-identical file for the binary
-//! encodings. For ascii every value is identical, and so are the bytes whenever the file prints
-//! its numbers in shortest `%g`-like form with one separator style (true of the Stanford scans):
-//! floats are printed with the fewest digits that round-trip in their declared type, line
-//! terminators and a trailing space on vertex lines follow the source, and every other line
-//! (header, faces, other elements) is copied verbatim.
+//! Reading a file and writing it back unchanged (without the noise flag) yields a byte-identical
+//! file for the binary encodings. For ascii every value is identical, and so are the bytes
+//! whenever the file prints its numbers in shortest `%g`-like form with one separator style (true
+//! of the Stanford scans): floats are printed with the fewest digits that round-trip in their
+//! declared type, line terminators and a trailing space on vertex lines follow the source, and
+//! every other line (header, faces, other elements) is copied verbatim.
 
 mod body;
 mod header;
@@ -46,8 +53,11 @@ pub use header::{PlyElement, PlyEncoding, PlyProperty, PlyType};
 
 use self::body::{FaceTarget, PosCodec, Walker, eof, faces_digest, format_ascii, parse_ascii};
 use self::header::Header;
-use super::{AtomicFile, Extras, IoError, Meta, Sink, Source, SourceInfo, Trailer, open_file};
-use crate::points::{Faces, PointBatch, ScalarType, Schema, write_scalar};
+use super::{
+    AtomicFile, Extras, IoError, Meta, NOISE_FIELD, Sink, SinkOptions, Source, SourceInfo, Trailer,
+    foreign_field_type, open_file,
+};
+use crate::points::{FLAG_NOISE, Faces, PointBatch, ScalarType, Schema, write_scalar};
 
 /// Read buffer size; binary batches larger than this bypass the buffer.
 const READ_BUF: usize = 1 << 16;
@@ -532,6 +542,8 @@ pub struct PlySink {
     source: Schema,
     /// For each target field, the source field it comes from; `None` when the layouts agree.
     map: Option<Vec<Option<usize>>>,
+    /// Target field receiving the noise flag.
+    noise: Option<usize>,
     count: u64,
     written: u64,
     /// Elements after `vertex`, as declared in the output header.
@@ -607,11 +619,29 @@ impl PlySink {
     /// and a header property the records lack is written as 0. Otherwise a `binary_little_endian`
     /// header is built from `like.schema`, plus a `face` element (`list uchar int vertex_indices`)
     /// when `like.faces` is set; 64-bit integer fields, which PLY lacks, are written as `double`,
-    /// and names are made valid PLY identifiers (`gps time` → `gps_time`).
+    /// so are integer x, y and z (LAS stores scaled `I32` coordinates; the positions written are
+    /// the decoded ones, not rounded to whole units), and names are made valid PLY identifiers
+    /// (`gps time` → `gps_time`).
     ///
     /// # Errors
     /// The directory is not writable; a face element stored before `vertex` would need a new count.
     pub fn create(path: &Path, like: &SourceInfo, count: u64) -> Result<PlySink, IoError> {
+        PlySink::create_with(path, like, count, &SinkOptions::default())
+    }
+
+    /// [`PlySink::create`] with options. With [`SinkOptions::noise_flag`] the vertex element gets
+    /// a last property `uchar noise` holding 1 for points flagged [`FLAG_NOISE`], else 0; when it
+    /// already has a property `noise` (a re-run), that property is overwritten instead (in its
+    /// own type).
+    ///
+    /// # Errors
+    /// As [`PlySink::create`].
+    pub fn create_with(
+        path: &Path,
+        like: &SourceInfo,
+        count: u64,
+        options: &SinkOptions,
+    ) -> Result<PlySink, IoError> {
         let (header_text, pre_vertex, encoding, target, post, trailing_space, newline, by_name) =
             match &like.meta {
                 Meta::Ply(m) if m.vertex_element().is_some() => {
@@ -654,6 +684,14 @@ impl PlySink {
                         }
                         _ => {}
                     }
+                    if options.noise_flag
+                        && !h.elements[m.vertex]
+                            .properties
+                            .iter()
+                            .any(|p| p.name == NOISE_FIELD)
+                    {
+                        h.push_property(m.vertex, NOISE_FIELD, ScalarType::U8);
+                    }
                     let vel = &h.elements[m.vertex];
                     let fields: Vec<(&str, ScalarType)> = vel
                         .properties
@@ -678,14 +716,18 @@ impl PlySink {
                 }
                 _ => {
                     let mut fields: Vec<(String, ScalarType)> = Vec::new();
-                    for f in &like.schema.fields {
+                    for (i, f) in like.schema.fields.iter().enumerate() {
                         let taken: Vec<String> = fields.iter().map(|f| f.0.clone()).collect();
-                        let ty = if header::type_keyword(f.ty).is_some() {
-                            f.ty
+                        let ty = foreign_field_type(&like.schema, i);
+                        let ty = if header::type_keyword(ty).is_some() {
+                            ty
                         } else {
                             ScalarType::F64
                         };
                         fields.push((ply_name(&f.name, &taken), ty));
+                    }
+                    if options.noise_flag && !fields.iter().any(|f| f.0 == NOISE_FIELD) {
+                        fields.push((NOISE_FIELD.to_string(), ScalarType::U8));
                     }
                     let refs: Vec<(&str, ScalarType)> =
                         fields.iter().map(|(n, t)| (n.as_str(), *t)).collect();
@@ -728,7 +770,10 @@ impl PlySink {
                 .map(|f| source.field_index(&f.name))
                 .collect()
         } else {
-            (0..target.fields.len()).map(Some).collect()
+            // Target fields follow the source's one for one; an appended `noise` has no source.
+            (0..target.fields.len())
+                .map(|j| (j < source.fields.len()).then_some(j))
+                .collect()
         };
         let same = source.endian == target.endian
             && source.record_len == target.record_len
@@ -738,6 +783,10 @@ impl PlySink {
                         && source.fields[s].offset == target.fields[j].offset
                 })
             });
+        let noise = options
+            .noise_flag
+            .then(|| target.field_index(NOISE_FIELD))
+            .flatten();
         let face = post
             .iter()
             .position(|e| e.name == "face")
@@ -754,6 +803,7 @@ impl PlySink {
             target,
             source,
             map: (!same).then_some(map),
+            noise,
             count,
             written: 0,
             post,
@@ -899,6 +949,12 @@ impl Sink for PlySink {
         }
         self.codec
             .encode(&self.target, &mut self.buf, &batch.positions);
+        if let Some(k) = self.noise {
+            for (i, rec) in self.buf.chunks_exact_mut(trl).enumerate() {
+                let flag = u8::from(batch.flag(i) & FLAG_NOISE != 0);
+                self.target.set_f64(rec, k, f64::from(flag));
+            }
+        }
         if self.encoding.is_binary() {
             self.out.write_all(&self.buf).map_err(|e| self.out.err(e))?;
         } else {
