@@ -81,7 +81,7 @@ fn knn(c: &mut Criterion) {
 fn normals_and_solve(c: &mut Criterion) {
     let pts = cloud(size());
     let index = KnnIndex::build(&pts, origin_of(&pts)).unwrap();
-    let (lists, _) = index.knn_all(16).unwrap();
+    let (lists, radii) = index.knn_all(16).unwrap();
     let (normals, _) = pca_normals(&pts, &lists);
     let mut g = c.benchmark_group("kernels_k16");
     g.sample_size(10);
@@ -94,6 +94,7 @@ fn normals_and_solve(c: &mut Criterion) {
             black_box(points_step(
                 &pts,
                 &lists,
+                &radii,
                 &normals,
                 Solve::Robust { eps: 1e-2 },
             ))

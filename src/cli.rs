@@ -70,7 +70,7 @@ pub enum NormalsArg {
 /// Flags of `qemd denoise`.
 #[derive(Debug, Args)]
 pub struct DenoiseArgs {
-    /// Input file (.ply, .obj, .off).
+    /// Input file (.ply, .obj, .off, .las, .laz, .pcd, .xyz, .txt, .pts, .bin).
     pub input: PathBuf,
     /// Output file; its extension picks the format unless --format is given.
     #[arg(short, long)]
@@ -108,8 +108,8 @@ pub struct DenoiseArgs {
     /// Worker threads (default: all cores); the output is identical for any value.
     #[arg(long)]
     pub threads: Option<usize>,
-    /// Statistical outliers: leave them, flag them (LAS class 7 or a `noise` property), or
-    /// remove them.
+    /// Statistical outliers: leave them, flag them (LAS class 7, or a `noise` property in PLY,
+    /// PCD and text; flagged points keep their input position), or remove them.
     #[arg(long, value_enum, default_value_t = OutliersArg::Off)]
     pub outliers: OutliersArg,
     /// Outlier threshold: mean k-NN distance above mean + ALPHA·σ (default from config: 2).

@@ -281,3 +281,27 @@ fn utm_coordinates_keep_a_one_millimetre_step() {
     let step = mean(&high) - mean(&low);
     assert!((step - 1e-3).abs() < 1e-4, "the 1 mm step became {step}");
 }
+
+/// Regression (issue 3): an isolated outlier's k-NN list reaches a distant surface, and the
+/// robust solve would project it onto that surface, a jump of the whole distance. Steps beyond
+/// the neighbourhood's sampling scale are refused: the point stays and is counted.
+#[test]
+fn issue_3_isolated_point_does_not_jump_onto_a_distant_surface() {
+    let mut pts = Vec::new();
+    for i in 0..10 {
+        for j in 0..10 {
+            pts.push(DVec3::new(i as f64, j as f64, 0.01 * ((i * j) % 3) as f64));
+        }
+    }
+    pts.push(DVec3::new(50.0, 50.0, 50.0));
+    let out = denoise(&pts, None, &Params::default()).unwrap();
+    assert_eq!(out.positions[100], DVec3::new(50.0, 50.0, 50.0));
+    assert_eq!(out.stats.far, 1);
+    // The paper's plain solve keeps its exact definition (no bound).
+    let plain = Params {
+        solve: SolveKind::Plain,
+        ..Params::default()
+    };
+    let out = denoise(&pts, None, &plain).unwrap();
+    assert_eq!(out.stats.far, 0);
+}

@@ -55,7 +55,10 @@ fn missing_temp_dir_is_a_clear_error_before_any_output() {
         .unwrap();
     let err = String::from_utf8_lossy(&out.stderr);
     assert_eq!(out.status.code(), Some(1), "{err}");
-    assert!(err.contains("nope") && err.contains("temporary directory"), "{err}");
+    assert!(
+        err.contains("nope") && err.contains("temporary directory"),
+        "{err}"
+    );
     assert_eq!(entries(d.path()), vec!["in.ply"]);
 }
 
@@ -97,7 +100,7 @@ fn ctrl_c_stops_the_run_and_cleans_up() {
     let input = d.path().join("in.ply");
     cloud(&input, 400_000);
     let output = d.path().join("out.ply");
-    let mut child = qemd()
+    let child = qemd()
         .args(["denoise", input.to_str().unwrap(), "-o"])
         .arg(&output)
         .args(["--tile-points", "2000", "-q", "--temp-dir"])
@@ -108,7 +111,10 @@ fn ctrl_c_stops_the_run_and_cleans_up() {
     // Wait until the run has spilled something, then interrupt it.
     let start = Instant::now();
     while entries(&tmp).is_empty() {
-        assert!(start.elapsed() < Duration::from_secs(60), "the run never started");
+        assert!(
+            start.elapsed() < Duration::from_secs(60),
+            "the run never started"
+        );
         std::thread::sleep(Duration::from_millis(2));
     }
     let killed = Command::new("kill")

@@ -69,13 +69,9 @@ fn offset(
     if sw > 0.0 { swh / sw } else { 0.0 }
 }
 
-fn finish(v: DVec3, n: DVec3, h: f64) -> (DVec3, bool) {
+fn finish(v: DVec3, n: DVec3, h: f64) -> (DVec3, u8) {
     let w = n * h;
-    if w.is_finite() {
-        (v + w, false)
-    } else {
-        (v, false)
-    }
+    if w.is_finite() { (v + w, 0) } else { (v, 0) }
 }
 
 /// Bilateral mesh denoising, `params.iterations` passes.
@@ -92,7 +88,7 @@ pub fn mesh(pos: &[DVec3], faces: &Faces, params: &Params) -> Result<Output, Den
     let sigma_c = mean_edge_length(pos, &adjacency);
     let origin = origin_of(pos);
     let mut cur = pos.to_vec();
-    let mut stayed = vec![false; pos.len()];
+    let mut stayed = vec![0u8; pos.len()];
     for pass in 0..params.iterations {
         let vn = vertex_normals(&cur, faces, NormalWeighting::Area);
         if pass == 0 {
@@ -103,7 +99,7 @@ pub fn mesh(pos: &[DVec3], faces: &Faces, params: &Params) -> Result<Output, Den
         let index = KnnIndex::build(&cur, origin)?;
         let r2 = 4.0 * sigma_c * sigma_c;
         timer.lap("neighbours", &mut stats);
-        let step: Vec<(DVec3, bool)> = (0..cur.len())
+        let step: Vec<(DVec3, u8)> = (0..cur.len())
             .into_par_iter()
             .with_min_len(512)
             .map_init(
@@ -137,7 +133,7 @@ pub fn points_step(
     lists: &Neighbourhoods,
     normals: &[DVec3],
     sigma_c: f64,
-) -> Vec<(DVec3, bool)> {
+) -> Vec<(DVec3, u8)> {
     let r2 = 4.0 * sigma_c * sigma_c;
     (0..cur.len())
         .into_par_iter()
@@ -145,7 +141,7 @@ pub fn points_step(
         .map_init(Vec::new, |buf, i| {
             let v = cur[i];
             if !v.is_finite() {
-                return (v, false);
+                return (v, 0);
             }
             let nbrs = lists
                 .get(i)

@@ -86,8 +86,8 @@ pub struct CloudResult {
     pub duplicate: Vec<bool>,
     /// True where the point's neighbourhood had no plane (coincident or collinear) in pass 1.
     pub degenerate: Vec<bool>,
-    /// True where a pass left the point in place on a singular quadric.
-    pub stayed: Vec<bool>,
+    /// Why a pass left the point in place (`qem::stay` flags, or-ed over passes).
+    pub stayed: Vec<u8>,
     /// Phase timings.
     pub stats: Stats,
 }
@@ -217,11 +217,25 @@ pub fn run(
         })
         .collect();
     drop(index);
+    // The step bound of each point: the largest k-NN radius among its neighbours, i.e. the scale
+    // at which the surface around it is sampled. An isolated point's own radius reaches the
+    // distant surface it would be projected onto; its neighbours' radii do not.
+    let limits: Vec<f64> = (0..n)
+        .into_par_iter()
+        .map(|j| {
+            lists
+                .get(j)
+                .iter()
+                .filter(|&&u| u as usize != j)
+                .map(|&u| radii[u as usize])
+                .fold(0.0, f64::max)
+        })
+        .collect();
     timer.lap("neighbours", &mut stats);
 
     let solve = params.solver();
     let mut cur = frame.positions.clone();
-    let mut stayed = vec![false; n];
+    let mut stayed = vec![0u8; n];
     let mut degenerate = vec![false; n];
     for pass in 0..params.iterations {
         let (normals, _) = pca_normals(&cur, &lists);
@@ -232,7 +246,7 @@ pub fn run(
         }
         timer.lap("normals", &mut stats);
         let step = match params.method {
-            Method::Qem => qem::points_step(&cur, &lists, &normals, solve),
+            Method::Qem => qem::points_step(&cur, &lists, &limits, &normals, solve),
             Method::Bilateral => bilateral::points_step(&cur, &lists, &normals, globals.spacing),
         };
         cur = merge_step(step, &mut stayed);

@@ -13,13 +13,34 @@ use crate::geometry::{Quadric, Solve};
 use crate::neighbours::{MeshAdjacency, Neighbourhoods, RingScratch};
 use crate::points::Faces;
 
-/// The new position of `v` from the quadric `q` (relative to `v`), and whether it stayed put
-/// because the quadric was singular (or the solve not finite).
+/// Why a point stayed where it was in a pass (bit flags, or-ed over passes).
+pub mod stay {
+    /// The summed quadric was singular, or the solve not finite.
+    pub const SINGULAR: u8 = 1;
+    /// The minimiser lay farther than the point's neighbourhood reaches (isolated points and
+    /// outliers, whose planes all belong to a distant surface).
+    pub const FAR: u8 = 2;
+}
+
+/// The new position of `v` from the quadric `q` (relative to `v`), and why it stayed put, if it
+/// did. `limit2` (squared) bounds the step: a minimiser farther than the neighbourhood reaches
+/// is not trusted. The paper's plain solve has no bound (`f64::INFINITY`).
 #[inline]
-fn apply(v: DVec3, q: &Quadric, solve: Solve) -> (DVec3, bool) {
+fn apply(v: DVec3, q: &Quadric, solve: Solve, limit2: f64) -> (DVec3, u8) {
     match solve.offset(q) {
-        Some(w) => (v + w, false),
-        None => (v, true),
+        Some(w) if w.length_squared() <= limit2 => (v + w, 0),
+        Some(_) => (v, stay::FAR),
+        None => (v, stay::SINGULAR),
+    }
+}
+
+/// The step bound of `solve` for a point-cloud neighbourhood reaching `reach2` (squared): none for
+/// the paper's plain solve, the neighbourhood's reach for the others.
+#[inline]
+pub fn step_limit(solve: Solve, reach2: f64) -> f64 {
+    match solve {
+        Solve::Plain => f64::INFINITY,
+        _ => reach2,
     }
 }
 
@@ -43,14 +64,14 @@ pub fn summed_quadric(
 }
 
 /// One mesh pass: every vertex moves to the minimiser of the quadrics of its `rings`-ring.
-/// Returns the new positions and, per vertex, whether it stayed put on a singular quadric.
+/// Returns the new positions and, per vertex, why it stayed put ([`stay`] flags, 0 if it moved).
 pub fn mesh_step(
     pos: &[DVec3],
     adjacency: &MeshAdjacency,
     normals: &[DVec3],
     rings: usize,
     solve: Solve,
-) -> Vec<(DVec3, bool)> {
+) -> Vec<(DVec3, u8)> {
     (0..pos.len())
         .into_par_iter()
         .with_min_len(512)
@@ -59,7 +80,10 @@ pub fn mesh_step(
             |(scratch, ring), v| {
                 adjacency.ring(v, rings, scratch, ring);
                 let q = summed_quadric(pos, normals, pos[v], ring);
-                apply(pos[v], &q, solve)
+                // Mesh vertices are not bounded: EVALUATION.md's robust operator lets a few
+                // vertices step beyond their ring (the golden outputs have them), and a mesh has
+                // no isolated points.
+                apply(pos[v], &q, solve, f64::INFINITY)
             },
         )
         .collect()
@@ -80,7 +104,7 @@ pub fn mesh(pos: &[DVec3], faces: &Faces, params: &Params) -> Result<Output, Den
     timer.lap("neighbours", &mut stats);
     let solve = params.solver();
     let mut cur = pos.to_vec();
-    let mut stayed = vec![false; pos.len()];
+    let mut stayed = vec![0u8; pos.len()];
     for pass in 0..params.iterations {
         let vn = vertex_normals(&cur, faces, params.normals);
         if pass == 0 {
@@ -99,8 +123,8 @@ pub fn mesh(pos: &[DVec3], faces: &Faces, params: &Params) -> Result<Output, Den
     })
 }
 
-/// Splits a pass's results into positions, or-ing its stayed flags into `stayed`.
-pub fn merge_step(step: Vec<(DVec3, bool)>, stayed: &mut [bool]) -> Vec<DVec3> {
+/// Splits a pass's results into positions, or-ing its [`stay`] flags into `stayed`.
+pub fn merge_step(step: Vec<(DVec3, u8)>, stayed: &mut [u8]) -> Vec<DVec3> {
     step.into_iter()
         .zip(stayed.iter_mut())
         .map(|((p, s), acc)| {
@@ -110,24 +134,26 @@ pub fn merge_step(step: Vec<(DVec3, bool)>, stayed: &mut [bool]) -> Vec<DVec3> {
         .collect()
 }
 
-/// One point pass: every finite point moves to the minimiser of the quadrics of its k-NN list.
+/// One point pass: every finite point moves to the minimiser of the quadrics of its k-NN list,
+/// unless the step exceeds [`step_limit`] of `reach2[i]` (a squared neighbourhood scale).
 /// Non-finite points keep their value.
 pub fn points_step(
     pos: &[DVec3],
     lists: &Neighbourhoods,
+    reach2: &[f64],
     normals: &[DVec3],
     solve: Solve,
-) -> Vec<(DVec3, bool)> {
+) -> Vec<(DVec3, u8)> {
     (0..pos.len())
         .into_par_iter()
         .with_min_len(1024)
         .map(|i| {
             let v = pos[i];
             if !v.is_finite() {
-                return (v, false);
+                return (v, 0);
             }
             let q = summed_quadric(pos, normals, v, lists.get(i));
-            apply(v, &q, solve)
+            apply(v, &q, solve, step_limit(solve, reach2[i]))
         })
         .collect()
 }

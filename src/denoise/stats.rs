@@ -26,6 +26,10 @@ pub struct Stats {
     /// Points left in place in at least one pass because the summed quadric was singular or the
     /// solve not finite.
     pub singular: u64,
+    /// Points left in place in at least one pass because the minimiser lay farther than their
+    /// neighbourhood reaches (isolated points, outliers; not checked by the paper's plain solve).
+    #[serde(default)]
+    pub far: u64,
     /// Mesh vertices that no face references (they never move).
     pub unreferenced: u64,
     /// Faces with zero area (they contribute no normal).
@@ -48,7 +52,7 @@ impl Stats {
         &mut self,
         before: &[DVec3],
         after: &[DVec3],
-        stayed: &[bool],
+        stayed: &[u8],
         counted: impl Fn(usize) -> bool,
     ) {
         for i in (0..before.len()).filter(|&i| counted(i)) {
@@ -57,7 +61,8 @@ impl Stats {
                 self.moved += 1;
                 self.max_step = self.max_step.max(step);
             }
-            self.singular += stayed[i] as u64;
+            self.singular += (stayed[i] & 1 != 0) as u64;
+            self.far += (stayed[i] & 2 != 0) as u64;
         }
     }
 
@@ -66,6 +71,7 @@ impl Stats {
         self.points += o.points;
         self.moved += o.moved;
         self.singular += o.singular;
+        self.far += o.far;
         self.unreferenced += o.unreferenced;
         self.zero_area_faces += o.zero_area_faces;
         self.degenerate_neighbourhoods += o.degenerate_neighbourhoods;

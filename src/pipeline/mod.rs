@@ -14,7 +14,8 @@
 //! The output is created *like* the input (same schema, property types, header, order) and
 //! appears atomically; the input is only ever opened for reading, and an output path naming the
 //! input is refused. Non-finite points of a point cloud are dropped and counted (organized PCD
-//! clouds keep them, unprocessed). Outliers are flagged or removed as [`Outliers`] says.
+//! clouds keep them, unprocessed). Outliers are flagged (keeping their input position) or removed
+//! as [`OutlierMode`] says.
 //!
 //! [`Report`] records what happened: counts, tiles, halo growths, bytes spilled, per-phase wall and
 //! CPU time, peak RSS.
@@ -408,7 +409,12 @@ impl Assembler {
         let (p, outlier) = match result {
             None if !self.keep_non_finite => return false,
             None => (batch.positions[i], false),
-            Some((p, m)) => (p, self.mode != OutlierMode::Off && m > self.threshold),
+            // A flagged outlier keeps its input position: it is reported, not "denoised" onto
+            // a surface it does not belong to.
+            Some((_, m)) if self.mode != OutlierMode::Off && m > self.threshold => {
+                (batch.positions[i], true)
+            }
+            Some((p, _)) => (p, false),
         };
         if outlier && self.mode == OutlierMode::Remove {
             if self.keep_non_finite {
