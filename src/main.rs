@@ -98,6 +98,7 @@ fn denoise(a: DenoiseArgs) -> Result<()> {
         tile_points: a.tile_points,
         progress: progress.clone(),
         cancel,
+        work_dir: None,
     };
     let report = pipeline::run(&job, &opts);
     progress.finish();

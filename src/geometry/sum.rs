@@ -175,6 +175,43 @@ impl ExactSum {
     }
 }
 
+/// The serialised form: the limbs as lists (serde has no impls for arrays this long).
+#[derive(serde::Serialize, serde::Deserialize)]
+struct ExactSumRepr {
+    pos: Vec<u64>,
+    neg: Vec<u64>,
+    count: u64,
+    non_finite: u64,
+}
+
+impl serde::Serialize for ExactSum {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        ExactSumRepr {
+            pos: self.pos.to_vec(),
+            neg: self.neg.to_vec(),
+            count: self.count,
+            non_finite: self.non_finite,
+        }
+        .serialize(s)
+    }
+}
+
+impl<'de> serde::Deserialize<'de> for ExactSum {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        let r = ExactSumRepr::deserialize(d)?;
+        let limbs = |v: Vec<u64>| -> Result<[u64; LIMBS], D::Error> {
+            v.try_into()
+                .map_err(|_| serde::de::Error::custom(format!("expected {LIMBS} limbs")))
+        };
+        Ok(ExactSum {
+            pos: limbs(r.pos)?,
+            neg: limbs(r.neg)?,
+            count: r.count,
+            non_finite: r.non_finite,
+        })
+    }
+}
+
 impl FromIterator<f64> for ExactSum {
     fn from_iter<I: IntoIterator<Item = f64>>(iter: I) -> Self {
         let mut s = ExactSum::new();
@@ -206,6 +243,13 @@ mod tests {
         let s: ExactSum = [-3.0, 1.0, f64::NAN].into_iter().collect();
         assert_eq!((s.value(), s.count(), s.non_finite()), (-2.0, 2, 1));
         assert_eq!(ExactSum::new().mean(), 0.0);
+    }
+
+    #[test]
+    fn serde_round_trip_keeps_every_bit() {
+        let s: ExactSum = [1e300, -3.5, 1e-300, f64::NAN].into_iter().collect();
+        let back: ExactSum = serde_json::from_str(&serde_json::to_string(&s).unwrap()).unwrap();
+        assert!(back == s);
     }
 
     proptest! {

@@ -38,7 +38,7 @@ use crate::denoise::{self, DenoiseError, Params, PhaseTiming, Stats, Timer, orig
 use crate::geometry::ExactSum;
 use crate::io::{self, BATCH, Cloud, Extras, Format, IoError, SinkOptions, Source, SourceInfo};
 use crate::points::{FLAG_NOISE, PointBatch};
-use crate::tiling::plan::{Planner, SAMPLE};
+use crate::tiling::plan::{Plan, Planner, SAMPLE};
 use crate::tiling::spill::{ResultMerge, SpillWriter, TileResult};
 use crate::tiling::{self, TilingError};
 
@@ -156,6 +156,10 @@ pub struct RunOptions {
     pub progress: Arc<dyn Progress>,
     /// Set to stop the run at the next batch or tile.
     pub cancel: Arc<AtomicBool>,
+    /// A persistent working directory for the tiled path (a job's): spill files, finished tiles
+    /// and the plan stay there, so a run interrupted at any point resumes with only the
+    /// unfinished tiles. `None`: a fresh temporary directory, removed at the end.
+    pub work_dir: Option<PathBuf>,
 }
 
 /// The default memory budget: 1 GiB.
@@ -169,6 +173,7 @@ impl Default for RunOptions {
             tile_points: None,
             progress: Arc::new(NoProgress),
             cancel: Arc::new(AtomicBool::new(false)),
+            work_dir: None,
         }
     }
 }
@@ -179,6 +184,7 @@ impl std::fmt::Debug for RunOptions {
             .field("memory_budget", &self.memory_budget)
             .field("temp_dir", &self.temp_dir)
             .field("tile_points", &self.tile_points)
+            .field("work_dir", &self.work_dir)
             .finish()
     }
 }
@@ -212,6 +218,9 @@ pub struct Report {
     pub empty_tiles: u64,
     /// Times a tile's halo had to grow.
     pub halo_growths: u64,
+    /// Tiles taken from an earlier, interrupted run's checkpoints.
+    #[serde(default)]
+    pub tiles_resumed: u64,
     /// Bytes written to spill and result files.
     pub bytes_spilled: u64,
     /// Denoiser statistics.
@@ -344,6 +353,7 @@ fn empty_report(job: &Job, mode: &str) -> Report {
         tiles: 1,
         empty_tiles: 0,
         halo_growths: 0,
+        tiles_resumed: 0,
         bytes_spilled: 0,
         stats: Stats::default(),
         phases: Vec::new(),
@@ -583,21 +593,48 @@ fn stream(
     Ok(src.finish()?)
 }
 
-/// A temporary directory checked to exist, be writable and have room for `need` bytes.
-fn temp_dir(opts: &RunOptions, need: u64) -> Result<tempfile::TempDir, PipelineError> {
-    let base = opts.temp_dir.clone().unwrap_or_else(std::env::temp_dir);
+/// Where the tiled path keeps its files: a temporary directory removed when dropped, or a
+/// caller's persistent job directory.
+enum Scratch {
+    Temp(tempfile::TempDir),
+    Persistent(PathBuf),
+}
+
+impl Scratch {
+    fn path(&self) -> &Path {
+        match self {
+            Scratch::Temp(d) => d.path(),
+            Scratch::Persistent(p) => p,
+        }
+    }
+}
+
+/// The scratch directory, checked to exist, be writable and have room for `need` bytes.
+fn scratch(opts: &RunOptions, need: u64) -> Result<Scratch, PipelineError> {
+    let base = opts
+        .work_dir
+        .clone()
+        .or_else(|| opts.temp_dir.clone())
+        .unwrap_or_else(std::env::temp_dir);
     let bad = |detail: String| PipelineError::TempDir {
         path: base.clone(),
         detail,
     };
-    if !base.is_dir() {
-        return Err(bad("does not exist or is not a directory".into()));
-    }
-    let dir = tempfile::Builder::new()
-        .prefix("qemd-")
-        .tempdir_in(&base)
-        .map_err(|e| bad(format!("cannot create a directory in it: {e}")))?;
-    let free = fs4::available_space(dir.path()).map_err(|e| bad(e.to_string()))?;
+    let s = if opts.work_dir.is_some() {
+        std::fs::create_dir_all(&base).map_err(|e| bad(format!("cannot create it: {e}")))?;
+        Scratch::Persistent(base.clone())
+    } else {
+        if !base.is_dir() {
+            return Err(bad("does not exist or is not a directory".into()));
+        }
+        Scratch::Temp(
+            tempfile::Builder::new()
+                .prefix("qemd-")
+                .tempdir_in(&base)
+                .map_err(|e| bad(format!("cannot create a directory in it: {e}")))?,
+        )
+    };
+    let free = fs4::available_space(s.path()).map_err(|e| bad(e.to_string()))?;
     if free < need {
         return Err(bad(format!(
             "{:.2} GiB free, the tiled run needs about {:.2} GiB",
@@ -605,7 +642,70 @@ fn temp_dir(opts: &RunOptions, need: u64) -> Result<tempfile::TempDir, PipelineE
             need as f64 / (1u64 << 30) as f64
         )));
     }
-    Ok(dir)
+    Ok(s)
+}
+
+/// Writes `value` as JSON to `path` atomically (checkpoint metadata).
+fn save_json<T: serde::Serialize>(path: &Path, value: &T) -> Result<(), PipelineError> {
+    use std::io::Write;
+    let io_err = |e: std::io::Error| PipelineError::Io(IoError::io(path, e));
+    let mut f = io::AtomicFile::create(path)?;
+    let text = serde_json::to_vec(value).map_err(|e| io_err(std::io::Error::other(e)))?;
+    f.write_all(&text).map_err(io_err)?;
+    f.commit_unsynced()?;
+    Ok(())
+}
+
+/// Reads JSON written by [`save_json`]; `None` when missing or unreadable (then redone).
+fn load_json<T: serde::de::DeserializeOwned>(path: &Path) -> Option<T> {
+    serde_json::from_slice(&std::fs::read(path).ok()?).ok()
+}
+
+/// Removes every checkpoint file of an earlier run from `dir` (a plan that changed invalidates
+/// them all).
+fn clear_checkpoints(dir: &Path) -> Result<(), PipelineError> {
+    let entries = std::fs::read_dir(dir).map_err(|e| IoError::io(dir, e))?;
+    for e in entries {
+        let p = e.map_err(|e| IoError::io(dir, e))?.path();
+        let name = p
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        let ours = name.starts_with("tile_")
+            || name.starts_with("merge_")
+            || ["plan.json", "spill.done", "globals.json"].contains(&name.as_str());
+        if ours {
+            std::fs::remove_file(&p).map_err(|e| IoError::io(&p, e))?;
+        }
+    }
+    Ok(())
+}
+
+/// Pass 2: every finite point to its owner's spill file, halo copies to its neighbours'.
+fn partition(job: &Job, opts: &RunOptions, plan: &Plan, dir: &Path) -> Result<u64, PipelineError> {
+    let tiling_err = |e| PipelineError::Tiling {
+        path: job.input.clone(),
+        error: e,
+    };
+    let mut spill = SpillWriter::create(dir, plan.tiles.len()).map_err(tiling_err)?;
+    let mut near = Vec::new();
+    stream(job, opts, |b| {
+        for (j, &p) in b.positions.iter().enumerate() {
+            if !p.is_finite() {
+                continue;
+            }
+            let i = b.start + j as u64;
+            let owner = plan.owner(p);
+            spill.push(owner, i, p, false).map_err(tiling_err)?;
+            near.clear();
+            plan.near(p, plan.halo, &mut near);
+            for &t in near.iter().filter(|&&t| t != owner) {
+                spill.push(t, i, p, true).map_err(tiling_err)?;
+            }
+        }
+        Ok(())
+    })?;
+    spill.finish().map_err(tiling_err)
 }
 
 fn run_tiled(
@@ -661,31 +761,37 @@ fn run_tiled(
     // Pass 2: partition.
     let need = plan.finite * (tiling::spill::SPILL_RECORD as u64 * 3 / 2)
         + plan.finite * tiling::spill::RESULT_RECORD as u64;
-    let dir = temp_dir(opts, need)?;
-    opts.progress.phase("partition", plan.points);
-    let mut spill = SpillWriter::create(dir.path(), plan.tiles.len()).map_err(tiling_err)?;
-    let mut near = Vec::new();
-    stream(job, opts, |b| {
-        for (j, &p) in b.positions.iter().enumerate() {
-            if !p.is_finite() {
-                continue;
-            }
-            let i = b.start + j as u64;
-            let owner = plan.owner(p);
-            spill.push(owner, i, p, false).map_err(tiling_err)?;
-            near.clear();
-            plan.near(p, plan.halo, &mut near);
-            for &t in near.iter().filter(|&&t| t != owner) {
-                spill.push(t, i, p, true).map_err(tiling_err)?;
-            }
-        }
-        Ok(())
-    })?;
-    let mut bytes = spill.finish().map_err(tiling_err)?;
+    let dir = scratch(opts, need)?;
+    // A persistent directory holding the same plan and a finished partition is reused: only
+    // tiles without a checkpoint are processed again.
+    let plan_path = dir.path().join("plan.json");
+    let spilled_marker = dir.path().join("spill.done");
+    let resume = load_json::<tiling::plan::Plan>(&plan_path).is_some_and(|p| p == plan)
+        && spilled_marker.exists();
+    let mut bytes: u64 = if resume {
+        load_json(&spilled_marker).unwrap_or(0)
+    } else {
+        0
+    };
+    if !resume {
+        clear_checkpoints(dir.path())?;
+        save_json(&plan_path, &plan)?;
+        opts.progress.phase("partition", plan.points);
+        bytes = partition(job, opts, &plan, dir.path())?;
+        save_json(&spilled_marker, &bytes)?;
+    }
     timer.lap("partition", &mut phases);
 
     // Global scalars, when the method needs them: a pre-pass over the tiles.
-    let globals = if cloud::needs_globals(&job.params) {
+    let globals_path = dir.path().join("globals.json");
+    let globals = if !cloud::needs_globals(&job.params) {
+        Globals::default()
+    } else if let Some(g) = resume
+        .then(|| load_json::<Globals>(&globals_path))
+        .flatten()
+    {
+        g
+    } else {
         opts.progress.phase("globals", plan.tiles.len() as u64);
         let mut sum = ExactSum::new();
         for t in 0..plan.tiles.len() {
@@ -693,11 +799,11 @@ fn run_tiled(
             sum.merge(&tiling::spacing_of_tile(dir.path(), &plan, t).map_err(tiling_err)?);
             opts.progress.advance(t as u64 + 1);
         }
-        Globals {
+        let g = Globals {
             spacing: sum.mean(),
-        }
-    } else {
-        Globals::default()
+        };
+        save_json(&globals_path, &g)?;
+        g
     };
 
     // Pass 3: tiles.
@@ -706,27 +812,54 @@ fn run_tiled(
     let (mut sum, mut sq) = (ExactSum::new(), ExactSum::new());
     let mut growths = 0u64;
     let mut empty = 0u64;
-    // The next tile's spill file is read on a helper thread while the current one computes.
-    let mut ahead = Some(tiling::load_tile(dir.path(), &plan, 0).map_err(tiling_err)?);
-    for t in 0..plan.tiles.len() {
-        cancelled(opts)?;
-        let pts = ahead.take();
-        let (o, next) = std::thread::scope(|s| {
-            let reader = (t + 1 < plan.tiles.len())
-                .then(|| s.spawn(|| tiling::load_tile(dir.path(), &plan, t + 1)));
-            let o = tiling::process_tile(dir.path(), &plan, t, &job.params, &globals, pts);
-            let next = reader.map(|h| h.join().expect("the spill reader does not panic"));
-            (o, next)
-        });
-        let o = o.map_err(tiling_err)?;
-        ahead = next.transpose().map_err(tiling_err)?;
+    let mut resumed = 0u64;
+    let outcome_path = |t: usize| dir.path().join(format!("tile_{t:05}.json"));
+    // Tiles already finished by an interrupted run (result file and outcome both present).
+    let finished: Vec<Option<tiling::TileOutcome>> = (0..plan.tiles.len())
+        .map(|t| {
+            (resume && tiling::spill::result_path(dir.path(), t).exists())
+                .then(|| load_json(&outcome_path(t)))
+                .flatten()
+        })
+        .collect();
+    let todo: Vec<usize> = (0..plan.tiles.len())
+        .filter(|&t| finished[t].is_none())
+        .collect();
+    let mut book = |o: &tiling::TileOutcome| {
         stats.merge(&o.stats);
         sum.merge(&o.knn_mean.0);
         sq.merge(&o.knn_mean.1);
         growths += o.halo_growths as u64;
         empty += (o.owned == 0) as u64;
         bytes += o.result_bytes;
-        opts.progress.advance(t as u64 + 1);
+    };
+    for o in finished.iter().flatten() {
+        resumed += 1;
+        book(o);
+    }
+    opts.progress.advance(resumed);
+    // The next tile's spill file is read on a helper thread while the current one computes.
+    let mut ahead = match todo.first() {
+        Some(&t) => Some(tiling::load_tile(dir.path(), &plan, t).map_err(tiling_err)?),
+        None => None,
+    };
+    for (i, &t) in todo.iter().enumerate() {
+        cancelled(opts)?;
+        let pts = ahead.take();
+        let following = todo.get(i + 1).copied();
+        let (o, next) = std::thread::scope(|s| {
+            let (path, plan) = (dir.path(), &plan);
+            let reader = following.map(|n| s.spawn(move || tiling::load_tile(path, plan, n)));
+            let o = tiling::process_tile(path, plan, t, &job.params, &globals, pts);
+            let next = reader.map(|h| h.join().expect("the spill reader does not panic"));
+            (o, next)
+        });
+        let o = o.map_err(tiling_err)?;
+        ahead = next.transpose().map_err(tiling_err)?;
+        // The outcome is saved after the result file: a tile counts as finished only with both.
+        save_json(&outcome_path(t), &o)?;
+        book(&o);
+        opts.progress.advance(resumed + i as u64 + 1);
     }
     stats.non_finite = plan.points - plan.finite;
     stats.points = plan.points;
@@ -798,6 +931,7 @@ fn run_tiled(
     r.tiles = plan.tiles.len() as u64;
     r.empty_tiles = empty;
     r.halo_growths = growths;
+    r.tiles_resumed = resumed;
     r.bytes_spilled = bytes;
     r.stats = stats;
     let mut all = phases.phases;

@@ -76,8 +76,8 @@ pub enum TilingError {
     },
 }
 
-/// How a tile went.
-#[derive(Debug, Clone, Default)]
+/// How a tile went (saved beside its result file as part of the checkpoint).
+#[derive(Debug, Clone, Default, serde::Serialize, serde::Deserialize)]
 pub struct TileOutcome {
     /// Points owned.
     pub owned: u64,
