@@ -58,19 +58,28 @@ fn clustered(n: usize, seed: u64) -> Vec<DVec3> {
         .collect()
 }
 
-/// A lattice where every point appears several times (ties and zero distances everywhere), and
-/// one stack of 40 copies, more than a small tile holds: the planner cannot split it and leaves
-/// empty tiles beside it.
+/// A lattice where every point appears several times (ties and zero distances everywhere), lying
+/// in the plane x = 5 of a box stretched along x by a few points at x = 0 and x = 10. Splitting
+/// the long axis cannot separate the plane, so the planner leaves empty tiles beside it, and one
+/// stack of 40 copies is more than a small tile holds.
 fn duplicates(seed: u64) -> Vec<DVec3> {
     let mut r = Rng(seed | 1);
-    let mut v = vec![DVec3::new(7.5, 7.5, 0.05); 40];
+    let mut v = vec![DVec3::new(5.0, 0.75, 0.75); 40];
     for i in 0..20 {
         for j in 0..20 {
-            let p = DVec3::new(i as f64, j as f64, ((i * j) % 3) as f64 * 0.1);
+            let p = DVec3::new(
+                5.0,
+                i as f64 * 0.1,
+                j as f64 * 0.1 + ((i * j) % 3) as f64 * 0.01,
+            );
             for _ in 0..(1 + (r.f() * 4.0) as usize) {
                 v.push(p);
             }
         }
+    }
+    for i in 0..30 {
+        let (y, z) = (r.f() * 2.0, r.f() * 2.0);
+        v.push(DVec3::new(if i % 2 == 0 { 0.0 } else { 10.0 }, y, z));
     }
     v
 }

@@ -752,9 +752,11 @@ fn run_tiled(
             }),
         });
     }
+    // A tile's working set plus the next tile read ahead, the planning sample and I/O buffers
+    // must fit the budget: a tile targets 40 % of it.
     let target = opts
         .tile_points
-        .unwrap_or_else(|| (opts.memory_budget / (2 * per_point)).max(10_000));
+        .unwrap_or_else(|| (opts.memory_budget * 2 / (5 * per_point)).max(10_000));
     let plan = planner.finish(target, job.params.k(), cloud::reach(&job.params));
     timer.lap("plan", &mut phases);
 

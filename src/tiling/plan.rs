@@ -3,8 +3,10 @@
 //! The planner sees every point once. It keeps the exact bounds of the finite points, the
 //! counts, and a *bottom-k* sample: the points whose hashed global index is among the `S`
 //! smallest, which is a uniform sample that does not depend on batch sizes or thread counts.
-//! Tiles are then chosen by count, not by area: a k-d split of the sample at medians, along the
-//! longest axis, until each leaf is expected to hold at most the target number of points.
+//! Tiles are then chosen by count, not by area: a k-d split of the sample along the longest axis,
+//! at the quantile that leaves each side a whole number of target-sized tiles, until each leaf is
+//! expected to hold at most the target number of points. Tiles thus come out close to the
+//! target for any cloud size.
 //!
 //! ```text
 //!   split tree (axis, value)            leaves = tiles; ownership is half-open:
@@ -297,7 +299,12 @@ fn split(
         return at;
     }
     idx.sort_unstable_by(|&a, &b| pts[a][axis].total_cmp(&pts[b][axis]).then(a.cmp(&b)));
-    let mid = idx.len() / 2;
+    // Split at the quantile that gives both sides a whole number of target-sized tiles, so every
+    // tile ends up close to the target whatever the cloud's size (and the memory a tile needs
+    // does not depend on the size of the cloud).
+    let count = (estimate / target).ceil().max(2.0);
+    let left = (count / 2.0).floor();
+    let mid = ((idx.len() as f64 * left / count).round() as usize).clamp(1, idx.len() - 1);
     let mut value = pts[idx[mid]][axis];
     if value <= bx.min[axis] || value >= bx.max[axis] {
         // Degenerate median (many equal coordinates): split the box in half instead.
