@@ -11,7 +11,7 @@ use glam::DVec3;
 use qem_denoise::denoise::normals::pca_normals;
 use qem_denoise::denoise::qem::points_step;
 use qem_denoise::denoise::{Params, denoise, origin_of};
-use qem_denoise::geometry::{Solve, SymMat3};
+use qem_denoise::geometry::SymMat3;
 use qem_denoise::neighbours::KnnIndex;
 use rayon::prelude::*;
 
@@ -96,7 +96,7 @@ fn normals_and_solve(c: &mut Criterion) {
                 &lists,
                 &radii,
                 &normals,
-                Solve::Robust { eps: 1e-2 },
+                &Params::paper(),
             ))
         })
     });

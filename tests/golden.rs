@@ -59,7 +59,7 @@ fn golden_qem_plain_mean_normals_k2() {
             rings: 2,
             normals: NormalWeighting::Mean,
             solve: SolveKind::Plain,
-            ..Params::default()
+            ..Params::paper()
         },
         "out_qem_plain_avg_k2.ply",
     );
@@ -73,7 +73,7 @@ fn golden_qem_plain_area_normals_k2() {
             rings: 2,
             normals: NormalWeighting::Area,
             solve: SolveKind::Plain,
-            ..Params::default()
+            ..Params::paper()
         },
         "out_qem_plain_area_k2.ply",
     );
@@ -90,7 +90,7 @@ fn golden_qem_robust_mean_normals_k2() {
             normals: NormalWeighting::Mean,
             solve: SolveKind::Robust,
             eps: 1e-2,
-            ..Params::default()
+            ..Params::paper()
         },
         "out_qem_robust1e-2_avg_k2.ply",
     );
@@ -103,7 +103,7 @@ fn golden_qem_points_k16() {
         Params {
             knn: Some(16),
             solve: SolveKind::Plain,
-            ..Params::default()
+            ..Params::paper()
         },
         "out_qem_points_k16.ply",
     );

@@ -164,12 +164,13 @@ proptest! {
 }
 
 /// The clean corner of a cube sampled as a point cloud, far from the origin and rotated: points
-/// whose neighbourhood lies on one face stay exactly on it; points near the edges, whose PCA
-/// normals blend two faces, take bounded steps and stay on the surface.
+/// whose neighbourhood (within the operator's reach) lies on one face stay exactly on it; points
+/// near the edges, whose PCA normals blend two faces, take bounded steps and stay close to the
+/// surface. Checked for the paper's operator and for the default.
 #[test]
 fn clean_corner_cloud_keeps_its_planes() {
     let mut pts = Vec::new();
-    let n = 30;
+    let n = 40;
     let h = 1.0 / n as f64;
     for i in 0..n {
         for j in 0..n {
@@ -182,34 +183,64 @@ fn clean_corner_cloud_keeps_its_planes() {
     let rot = DMat3::from_quat(DQuat::from_euler(glam::EulerRot::XYZ, 0.3, -0.7, 1.1));
     let off = DVec3::new(500_000.0, 5_000_000.0, 120.0);
     let moved: Vec<DVec3> = pts.iter().map(|&p| rot * p + off).collect();
-    let out = denoise(&moved, None, &Params::default()).unwrap();
-    let mut interior = 0;
-    for (o, p) in out.positions.iter().zip(&pts) {
-        let local = rot.transpose() * (*o - off);
-        let step = (local - *p).length();
-        // Distance of the start point to the second-nearest coordinate plane, i.e. to an edge.
-        let mut c = [p.x.abs(), p.y.abs(), p.z.abs()];
-        c.sort_by(f64::total_cmp);
-        // Two k-NN radii (k = 16, about 2.3 h each) from an edge, every normal used is exact.
-        if c[1] > 6.0 * h {
-            interior += 1;
-            assert!(step < 1e-8, "interior point {p} moved by {step}");
-        } else {
-            // Near features the operator snaps points towards the edge or corner (the paper's
-            // feature enhancement): bounded steps that stay on the surface.
-            let surface = local.x.abs().min(local.y.abs()).min(local.z.abs());
-            assert!(step < 4.0 * h, "point {p} near an edge moved by {step}");
-            assert!(
-                surface < 0.25 * h,
-                "point {p} left the surface by {surface}"
-            );
+    // (parameters, interior distance in h, largest step near edges, largest distance off the
+    // surface near edges): every normal used within the reach (k-NN radius ≈ 2.3 h per hop) of an
+    // interior point is exact.
+    let cases = [
+        (
+            Params {
+                knn: Some(16),
+                solve: SolveKind::Robust,
+                ..Params::paper()
+            },
+            6.0,
+            4.0,
+            0.25,
+        ),
+        (
+            Params {
+                knn: Some(16),
+                ..Params::default()
+            },
+            18.0,
+            4.0,
+            0.5,
+        ),
+    ];
+    for (params, interior_at, max_step, max_off) in cases {
+        let out = denoise(&moved, None, &params).unwrap();
+        let mut interior = 0;
+        for (o, p) in out.positions.iter().zip(&pts) {
+            let local = rot.transpose() * (*o - off);
+            let step = (local - *p).length();
+            // Distance of the start point to the second-nearest coordinate plane: to an edge.
+            let mut c = [p.x.abs(), p.y.abs(), p.z.abs()];
+            c.sort_by(f64::total_cmp);
+            if c[1] > interior_at * h {
+                interior += 1;
+                assert!(
+                    step < 1e-8,
+                    "{params:?}: interior point {p} moved by {step}"
+                );
+            } else {
+                // Near features the operator snaps points towards the edge or corner (the
+                // paper's feature enhancement): bounded steps close to the surface.
+                let surface = local.x.abs().min(local.y.abs()).min(local.z.abs());
+                assert!(step < max_step * h, "{params:?}: point {p} moved by {step}");
+                assert!(
+                    surface < max_off * h,
+                    "{params:?}: point {p} left the surface by {surface}"
+                );
+            }
         }
+        assert!(interior > pts.len() / 10, "{interior}");
     }
-    assert!(interior > pts.len() / 3);
 }
 
-/// A vertex displaced off a flat region returns exactly onto the plane, and vertices of a clean
-/// plane do not move.
+/// A vertex displaced off a flat region returns onto the plane. With the paper's operator only
+/// vertices whose 2-ring saw the tilted faces move; the default (filtered normals, repeated
+/// updates) spreads the bump's remainder: no vertex stays above a quarter of it, and on average
+/// the plane is flat to 1 % of it.
 #[test]
 fn displaced_vertex_on_a_plane_returns_to_it() {
     let (mut pos, faces) = noisy_grid(20, 0.0, 3);
@@ -218,7 +249,7 @@ fn displaced_vertex_on_a_plane_returns_to_it() {
     }
     let k = 10 * 20 + 10;
     pos[k].z = 0.01;
-    let out = denoise(&pos, Some(&faces), &Params::default()).unwrap();
+    let out = denoise(&pos, Some(&faces), &Params::paper()).unwrap();
     // The displaced vertex's own tilted plane pulls a little; every other plane in its 2-ring is
     // z = 0 exactly, so the result lies much closer to the plane than it started.
     assert!(
@@ -232,6 +263,12 @@ fn displaced_vertex_on_a_plane_returns_to_it() {
             assert!((pos[i] - pos[k]).length() < 0.25, "vertex {i} moved");
         }
     }
+    let out = denoise(&pos, Some(&faces), &Params::default()).unwrap();
+    for p in &out.positions {
+        assert!(p.z.abs() < 0.01 * 0.25, "{p}");
+    }
+    let mean = out.positions.iter().map(|p| p.z.abs()).sum::<f64>() / out.positions.len() as f64;
+    assert!(mean < 0.01 * 0.01, "{mean}");
 }
 
 /// UTM-sized coordinates keep full precision: a 10 cm patch with a 1 mm step at

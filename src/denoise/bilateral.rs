@@ -89,7 +89,7 @@ pub fn mesh(pos: &[DVec3], faces: &Faces, params: &Params) -> Result<Output, Den
     let origin = origin_of(pos);
     let mut cur = pos.to_vec();
     let mut stayed = vec![0u8; pos.len()];
-    for pass in 0..params.iterations {
+    for pass in 0..params.schedule(true).cycles {
         let vn = vertex_normals(&cur, faces, NormalWeighting::Area);
         if pass == 0 {
             stats.zero_area_faces = vn.zero_area_faces;

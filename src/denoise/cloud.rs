@@ -32,7 +32,7 @@ use glam::DVec3;
 use rayon::prelude::*;
 
 use super::frame::Frame;
-use super::normals::pca_normals;
+use super::normals::{filter_point_normals, pca_normals};
 use super::qem::{is_duplicate, merge_step};
 use super::{DenoiseError, Method, Params, Stats, Timer, bilateral, qem};
 use crate::geometry::ExactSum;
@@ -54,9 +54,13 @@ pub fn needs_globals(params: &Params) -> bool {
 
 /// Number of k-NN graph hops a result depends on (see the module overview).
 pub fn reach(params: &Params) -> usize {
+    let s = params.schedule(false);
     match params.method {
-        Method::Qem => 2 * params.iterations,
-        Method::Bilateral => params.iterations,
+        // Per cycle: PCA normals (1 hop), each filter iteration (1), each update (1: the
+        // neighbours' planes, moved by the previous update); the first update also reads the
+        // neighbours' normals, whose PCA reads their lists (+1).
+        Method::Qem => s.cycles * (2 + s.filter + s.updates),
+        Method::Bilateral => s.cycles,
     }
 }
 
@@ -233,23 +237,41 @@ pub fn run(
         .collect();
     timer.lap("neighbours", &mut stats);
 
-    let solve = params.solver();
+    let sched = params.schedule(false);
     let mut cur = frame.positions.clone();
     let mut stayed = vec![0u8; n];
     let mut degenerate = vec![false; n];
-    for pass in 0..params.iterations {
+    for pass in 0..sched.cycles {
         let (normals, _) = pca_normals(&cur, &lists);
         if pass == 0 {
             for (d, (nrm, p)) in degenerate.iter_mut().zip(normals.iter().zip(&cur)) {
                 *d = *nrm == DVec3::ZERO && p.is_finite();
             }
         }
-        timer.lap("normals", &mut stats);
-        let step = match params.method {
-            Method::Qem => qem::points_step(&cur, &lists, &limits, &normals, solve),
-            Method::Bilateral => bilateral::points_step(&cur, &lists, &normals, globals.spacing),
+        let normals = match params.method {
+            Method::Qem if sched.filter > 0 => filter_point_normals(
+                &cur,
+                &lists,
+                &radii,
+                &normals,
+                params.sigma_r_floor(false),
+                sched.filter,
+            ),
+            _ => normals,
         };
-        cur = merge_step(step, &mut stayed);
+        timer.lap("normals", &mut stats);
+        match params.method {
+            Method::Qem => {
+                for _ in 0..sched.updates {
+                    let step = qem::points_step(&cur, &lists, &limits, &normals, params);
+                    cur = merge_step(step, &mut stayed);
+                }
+            }
+            Method::Bilateral => {
+                let step = bilateral::points_step(&cur, &lists, &normals, globals.spacing);
+                cur = merge_step(step, &mut stayed);
+            }
+        }
         timer.lap("solve", &mut stats);
     }
     let exact: Vec<bool> = tainted.iter().map(|t| !t).collect();

@@ -19,6 +19,7 @@
 
 pub mod bilateral;
 pub mod cloud;
+pub mod filtered;
 pub mod frame;
 pub mod normals;
 pub mod qem;
@@ -106,33 +107,73 @@ pub enum SolveKind {
     /// `w = −A⁻¹b` (the paper).
     Plain,
     /// `w = v − A⁺(Av + b)`, eigenvalues below `eps·λmax` dropped.
-    #[default]
     Robust,
     /// `w = v − (A + λI)⁻¹(Av + b)`.
     Regularised,
+    /// `w = v − (A + μ·tr(A)/3·I)⁻¹(Av + b)`: the regularised solve with a penalty relative to
+    /// the quadric's own weight, so it is the same for any neighbourhood size or weighting.
+    #[default]
+    Damped,
+}
+
+/// Which planes the quadrics are built from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum Planes {
+    /// Meshes: each face's plane (its — filtered — normal through its centroid), area-weighted,
+    /// over the faces around the vertex. Point clouds: each neighbour's tangent plane, its normal
+    /// bent halfway towards the point's own where the two are nearly parallel (which removes the
+    /// outward bias of projecting onto the tangent planes of a curved surface).
+    #[default]
+    Face,
+    /// The paper: each neighbour's tangent plane (its normal through itself), over the vertex's
+    /// k-ring or the point's k nearest neighbours.
+    Tangent,
 }
 
 /// Denoising parameters, named as the CLI flags.
+///
+/// The defaults are qemd's operator: normals smoothed by a bilateral filter (faces on meshes,
+/// the k-NN graph on clouds), then repeated damped QEM updates on face (or curvature-corrected
+/// tangent) planes, with an amount of smoothing chosen from the data on meshes. [`Params::paper`]
+/// gives the paper's Algorithm 1 exactly.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct Params {
     /// `--method`.
     pub method: Method,
-    /// `--rings`: k-ring size in mesh mode (the vertex itself included).
+    /// `--rings`: k-ring size of tangent planes in mesh mode (the vertex itself included).
     pub rings: usize,
     /// `--knn`: neighbourhood size in point mode (the point itself included); setting it forces
     /// point mode. `None` means mesh mode for meshes and 16 for point clouds.
     pub knn: Option<usize>,
-    /// `--normals`: mesh vertex normals.
+    /// `--normals`: how vertex normals come from face normals (tangent planes on meshes).
     pub normals: NormalWeighting,
+    /// `--planes`.
+    pub planes: Planes,
+    /// `--filter`: normal-filter iterations per cycle (0: raw normals, as the paper). `None`:
+    /// 10 on meshes, 3 on point clouds.
+    pub filter: Option<usize>,
+    /// `--updates`: QEM updates per cycle. `None`: 5 on meshes, 2 on point clouds.
+    pub updates: Option<usize>,
+    /// `--iterations`: cycles (normal filter, then updates) for QEM, passes for bilateral.
+    /// 0 chooses: on meshes from the noise the data shows (a light cycle, then two or three
+    /// heavy ones unless the light one already left mostly shape); 1 on clouds; 3 for bilateral.
+    pub iterations: usize,
     /// `--solve`.
     pub solve: SolveKind,
     /// `--eps`: relative eigenvalue cut-off of the robust solve.
     pub eps: f64,
     /// `--lambda`: step penalty of the regularised solve.
     pub lambda: f64,
-    /// `--iterations`: number of Jacobi passes.
-    pub iterations: usize,
+    /// `--mu`: relative step penalty of the damped solve.
+    pub mu: f64,
+    /// `--sigma-r`: lower bound of the normal filter's range width. `None`: 0.35 on meshes, 0.2
+    /// on point clouds.
+    pub sigma_r: Option<f64>,
+    /// `--volume`: keep the enclosed volume of closed meshes (a final offset along the normals;
+    /// iso noise leaves the expected volume unchanged, so the input's is the target).
+    pub volume: bool,
 }
 
 /// Default point-mode neighbourhood size.
@@ -145,29 +186,87 @@ impl Default for Params {
             rings: 2,
             knn: None,
             normals: NormalWeighting::Area,
-            solve: SolveKind::Robust,
+            planes: Planes::Face,
+            filter: None,
+            updates: None,
+            iterations: 0,
+            solve: SolveKind::Damped,
             eps: 1e-2,
             lambda: 0.1,
-            iterations: 1,
+            mu: 0.5,
+            sigma_r: None,
+            volume: true,
         }
     }
 }
 
+/// The schedule a run resolves to.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Schedule {
+    /// Normal-filter iterations per cycle.
+    pub filter: usize,
+    /// Updates per cycle.
+    pub updates: usize,
+    /// Cycles; 0 means adaptive (meshes only).
+    pub cycles: usize,
+}
+
 impl Params {
-    /// The geometric solver these parameters select.
-    pub fn solver(&self) -> Solve {
+    /// The paper's Algorithm 1: tangent planes over 2-rings (k-NN lists for clouds) with
+    /// area-weighted vertex normals, raw normals, one update, the plain solve, no volume step.
+    pub fn paper() -> Params {
+        Params {
+            planes: Planes::Tangent,
+            filter: Some(0),
+            updates: Some(1),
+            iterations: 1,
+            solve: SolveKind::Plain,
+            volume: false,
+            ..Params::default()
+        }
+    }
+
+    /// The geometric solver these parameters select, for a quadric whose `A` has trace `trace`.
+    pub fn solver_for(&self, trace: f64) -> Solve {
         match self.solve {
             SolveKind::Plain => Solve::Plain,
             SolveKind::Robust => Solve::Robust { eps: self.eps },
             SolveKind::Regularised => Solve::Regularised {
                 lambda: self.lambda,
             },
+            SolveKind::Damped => Solve::Regularised {
+                lambda: (self.mu * trace / 3.0).max(f64::MIN_POSITIVE),
+            },
         }
+    }
+
+    /// The solver for unit-weight quadrics summed over `k` planes (trace `k`), for validation
+    /// and reporting.
+    pub fn solver(&self) -> Solve {
+        self.solver_for(3.0)
     }
 
     /// Neighbourhood size for point mode.
     pub fn k(&self) -> usize {
         self.knn.unwrap_or(DEFAULT_KNN)
+    }
+
+    /// Filter iterations, updates and cycles for mesh (`mesh`) or point mode.
+    pub fn schedule(&self, mesh: bool) -> Schedule {
+        Schedule {
+            filter: self.filter.unwrap_or(if mesh { 10 } else { 3 }),
+            updates: self.updates.unwrap_or(if mesh { 5 } else { 2 }),
+            cycles: match (self.iterations, self.method, mesh) {
+                (0, Method::Bilateral, _) => 3,
+                (0, Method::Qem, false) => 1,
+                (n, _, _) => n,
+            },
+        }
+    }
+
+    /// Lower bound of the normal filter's range width.
+    pub fn sigma_r_floor(&self, mesh: bool) -> f64 {
+        self.sigma_r.unwrap_or(if mesh { 0.35 } else { 0.2 })
     }
 
     /// Checks every range; call before any I/O.
@@ -192,14 +291,29 @@ impl Params {
                 "must be between 3 and 1024 (a plane needs three points)",
             );
         }
-        if !(1..=1000).contains(&self.iterations) {
-            return bad("iterations", "must be between 1 and 1000");
+        if self.iterations > 1000 {
+            return bad("iterations", "must be at most 1000 (0 chooses)");
+        }
+        if self.filter.is_some_and(|f| f > 1000) {
+            return bad("filter", "must be at most 1000");
+        }
+        if self.updates.is_some_and(|u| !(1..=1000).contains(&u)) {
+            return bad("updates", "must be between 1 and 1000");
         }
         if self.eps.is_nan() || self.eps <= 0.0 || self.eps >= 1.0 {
             return bad("eps", "must be in (0, 1)");
         }
         if !self.lambda.is_finite() || self.lambda <= 0.0 {
             return bad("lambda", "must be finite and > 0");
+        }
+        if !self.mu.is_finite() || self.mu <= 0.0 {
+            return bad("mu", "must be finite and > 0");
+        }
+        if self
+            .sigma_r
+            .is_some_and(|s| !s.is_finite() || s <= 0.0 || s > 2.0)
+        {
+            return bad("sigma-r", "must be in (0, 2]");
         }
         self.solver().validate()?;
         Ok(())
@@ -250,9 +364,10 @@ pub fn denoise(
             if let Some(i) = positions.iter().position(|p| !p.is_finite()) {
                 return Err(DenoiseError::NonFiniteVertex { index: i });
             }
-            match params.method {
-                Method::Qem => qem::mesh(positions, f, params),
-                Method::Bilateral => bilateral::mesh(positions, f, params),
+            match (params.method, params.planes) {
+                (Method::Qem, Planes::Tangent) => qem::mesh(positions, f, params),
+                (Method::Qem, Planes::Face) => filtered::mesh(positions, f, params),
+                (Method::Bilateral, _) => bilateral::mesh(positions, f, params),
             }
         }
         _ => cloud::run_all(positions, params),

@@ -7,9 +7,10 @@
 use glam::DVec3;
 use rayon::prelude::*;
 
+use super::filtered::{FaceTopology, face_geometry, filter_normals};
 use super::normals::vertex_normals;
-use super::{DenoiseError, Output, Params, Stats, Timer};
-use crate::geometry::{Quadric, Solve};
+use super::{DenoiseError, NormalWeighting, Output, Params, Planes, SolveKind, Stats, Timer};
+use crate::geometry::Quadric;
 use crate::neighbours::{MeshAdjacency, Neighbourhoods, RingScratch};
 use crate::points::Faces;
 
@@ -26,20 +27,20 @@ pub mod stay {
 /// did. `limit2` (squared) bounds the step: a minimiser farther than the neighbourhood reaches
 /// is not trusted. The paper's plain solve has no bound (`f64::INFINITY`).
 #[inline]
-fn apply(v: DVec3, q: &Quadric, solve: Solve, limit2: f64) -> (DVec3, u8) {
-    match solve.offset(q) {
+fn apply(v: DVec3, q: &Quadric, params: &Params, limit2: f64) -> (DVec3, u8) {
+    match params.solver_for(q.a.trace()).offset(q) {
         Some(w) if w.length_squared() <= limit2 => (v + w, 0),
         Some(_) => (v, stay::FAR),
         None => (v, stay::SINGULAR),
     }
 }
 
-/// The step bound of `solve` for a point-cloud neighbourhood reaching `reach2` (squared): none for
-/// the paper's plain solve, the neighbourhood's reach for the others.
+/// The step bound for a point-cloud neighbourhood reaching `reach2` (squared): none for the
+/// paper's plain solve, the neighbourhood's reach for the others.
 #[inline]
-pub fn step_limit(solve: Solve, reach2: f64) -> f64 {
-    match solve {
-        Solve::Plain => f64::INFINITY,
+pub fn step_limit(params: &Params, reach2: f64) -> f64 {
+    match params.solve {
+        SolveKind::Plain => f64::INFINITY,
         _ => reach2,
     }
 }
@@ -69,8 +70,7 @@ pub fn mesh_step(
     pos: &[DVec3],
     adjacency: &MeshAdjacency,
     normals: &[DVec3],
-    rings: usize,
-    solve: Solve,
+    params: &Params,
 ) -> Vec<(DVec3, u8)> {
     (0..pos.len())
         .into_par_iter()
@@ -78,19 +78,21 @@ pub fn mesh_step(
         .map_init(
             || (RingScratch::new(pos.len()), Vec::with_capacity(64)),
             |(scratch, ring), v| {
-                adjacency.ring(v, rings, scratch, ring);
+                adjacency.ring(v, params.rings, scratch, ring);
                 let q = summed_quadric(pos, normals, pos[v], ring);
                 // Mesh vertices are not bounded: EVALUATION.md's robust operator lets a few
                 // vertices step beyond their ring (the golden outputs have them), and a mesh has
                 // no isolated points.
-                apply(pos[v], &q, solve, f64::INFINITY)
+                apply(pos[v], &q, params, f64::INFINITY)
             },
         )
         .collect()
 }
 
-/// The QEM operator on a mesh: `params.iterations` Jacobi passes over k-rings with face-based
-/// vertex normals.
+/// The QEM operator on a mesh with tangent planes (the paper's when `params` is
+/// [`Params::paper`]): per cycle, vertex normals from the incident faces (their normals filtered
+/// first when `filter` > 0, then fixed for the cycle; recomputed before every update otherwise),
+/// then `updates` Jacobi passes over k-rings.
 ///
 /// # Errors
 /// Face indices out of range.
@@ -101,19 +103,38 @@ pub fn mesh(pos: &[DVec3], faces: &Faces, params: &Params) -> Result<Output, Den
         ..Stats::default()
     };
     let adjacency = MeshAdjacency::build(pos.len(), faces)?;
+    let topo = FaceTopology::build(pos.len(), faces);
+    let sigma_s = super::bilateral::mean_edge_length(pos, &adjacency);
     timer.lap("neighbours", &mut stats);
-    let solve = params.solver();
+    let s = params.schedule(true);
     let mut cur = pos.to_vec();
     let mut stayed = vec![0u8; pos.len()];
-    for pass in 0..params.iterations {
-        let vn = vertex_normals(&cur, faces, params.normals);
-        if pass == 0 {
-            stats.zero_area_faces = vn.zero_area_faces;
-            stats.unreferenced = vn.unreferenced;
-        }
+    let first = vertex_normals(pos, faces, params.normals);
+    stats.zero_area_faces = first.zero_area_faces;
+    stats.unreferenced = first.unreferenced;
+    for _ in 0..s.cycles.max(1) {
+        let filtered = (s.filter > 0).then(|| {
+            let (n, c, a) = face_geometry(&cur, faces);
+            let n = filter_normals(
+                &topo,
+                &n,
+                &c,
+                &a,
+                sigma_s,
+                params.sigma_r_floor(true),
+                s.filter,
+            );
+            weighted_vertex_normals(cur.len(), faces, &n, &a, params.normals)
+        });
         timer.lap("normals", &mut stats);
-        let step = mesh_step(&cur, &adjacency, &vn.normals, params.rings, solve);
-        cur = merge_step(step, &mut stayed);
+        for _ in 0..s.updates {
+            let normals = match &filtered {
+                Some(n) => n.clone(),
+                None => vertex_normals(&cur, faces, params.normals).normals,
+            };
+            let step = mesh_step(&cur, &adjacency, &normals, params);
+            cur = merge_step(step, &mut stayed);
+        }
         timer.lap("solve", &mut stats);
     }
     stats.book_moves(pos, &cur, &stayed, |_| true);
@@ -121,6 +142,27 @@ pub fn mesh(pos: &[DVec3], faces: &Faces, params: &Params) -> Result<Output, Den
         positions: cur,
         stats,
     })
+}
+
+/// Vertex normals from given face normals: area-weighted or plain mean, normalised.
+fn weighted_vertex_normals(
+    n: usize,
+    faces: &Faces,
+    face_normals: &[DVec3],
+    areas: &[f64],
+    weighting: NormalWeighting,
+) -> Vec<DVec3> {
+    let mut acc = vec![DVec3::ZERO; n];
+    for (fi, f) in faces.iter().enumerate() {
+        let w = match weighting {
+            NormalWeighting::Area => areas[fi],
+            NormalWeighting::Mean => 1.0,
+        };
+        for &v in f {
+            acc[v as usize] += face_normals[fi] * w;
+        }
+    }
+    acc.into_iter().map(DVec3::normalize_or_zero).collect()
 }
 
 /// Splits a pass's results into positions, or-ing its [`stay`] flags into `stayed`.
@@ -136,13 +178,15 @@ pub fn merge_step(step: Vec<(DVec3, u8)>, stayed: &mut [u8]) -> Vec<DVec3> {
 
 /// One point pass: every finite point moves to the minimiser of the quadrics of its k-NN list,
 /// unless the step exceeds [`step_limit`] of `reach2[i]` (a squared neighbourhood scale).
+/// With [`Planes::Face`], a neighbour's normal is bent halfway towards the point's own where the
+/// two are within 25° (normals must then be consistently oriented within a neighbourhood).
 /// Non-finite points keep their value.
 pub fn points_step(
     pos: &[DVec3],
     lists: &Neighbourhoods,
     reach2: &[f64],
     normals: &[DVec3],
-    solve: Solve,
+    params: &Params,
 ) -> Vec<(DVec3, u8)> {
     (0..pos.len())
         .into_par_iter()
@@ -152,10 +196,45 @@ pub fn points_step(
             if !v.is_finite() {
                 return (v, 0);
             }
-            let q = summed_quadric(pos, normals, v, lists.get(i));
-            apply(v, &q, solve, step_limit(solve, reach2[i]))
+            let q = match params.planes {
+                Planes::Tangent => summed_quadric(pos, normals, v, lists.get(i)),
+                Planes::Face => bent_quadric(pos, normals, i, lists.get(i)),
+            };
+            apply(v, &q, params, step_limit(params, reach2[i]))
         })
         .collect()
+}
+
+/// Cosine of the largest angle between a point's normal and a neighbour's for which the
+/// neighbour's plane uses the bisecting normal (25°).
+const BEND_COS: f64 = 0.906_307_787_036_649_9;
+
+/// The summed quadric of point `i` over `neighbourhood` with curvature-corrected planes: a
+/// neighbour `u` nearly parallel to `i` contributes the plane through `u` whose normal bisects
+/// `n_i` and `n_u`. On a sphere that plane passes through `i` exactly, so repeated projection
+/// no longer pushes convex surfaces outward; across a sharp edge (larger angles) the neighbour's
+/// own plane is kept so the edge stays sharp.
+#[inline]
+pub fn bent_quadric(pos: &[DVec3], normals: &[DVec3], i: usize, neighbourhood: &[u32]) -> Quadric {
+    let v = pos[i];
+    let ni = normals[i];
+    let mut q = Quadric::ZERO;
+    for &u in neighbourhood {
+        let mut nu = normals[u as usize];
+        if nu == DVec3::ZERO {
+            continue;
+        }
+        if nu.dot(ni) < 0.0 {
+            nu = -nu;
+        }
+        let n = if ni != DVec3::ZERO && ni.dot(nu) > BEND_COS {
+            (ni + nu).normalize()
+        } else {
+            nu
+        };
+        q.add_plane(n, pos[u as usize] - v, 1.0);
+    }
+    q
 }
 
 /// True when point `i`'s k-NN list starts with another point at distance zero with a lower tie

@@ -18,7 +18,7 @@ use glam::DVec3;
 use super::EvalError;
 use super::metrics::{Metrics, Reference};
 use super::noise::{NoiseModel, NoiseSpec, add_noise_with_length};
-use crate::denoise::{Method, NormalWeighting, Params, SolveKind, denoise};
+use crate::denoise::{Method, NormalWeighting, Params, denoise};
 use crate::points::Faces;
 
 /// Name of the row that measures the noisy input.
@@ -47,11 +47,9 @@ impl TableMethod {
         TableMethod::new(
             "qem",
             Params {
-                solve: SolveKind::Plain,
                 normals: NormalWeighting::Area,
                 rings: 2,
-                iterations: 1,
-                ..Params::default()
+                ..Params::paper()
             },
         )
     }
