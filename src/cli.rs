@@ -7,7 +7,7 @@ use std::path::PathBuf;
 
 use clap::{Args, Parser, Subcommand, ValueEnum};
 
-use crate::denoise::{Method, NormalWeighting, Params, SolveKind};
+use crate::denoise::{Method, NormalWeighting, Params, Planes, SolveKind};
 use crate::io::Format;
 
 /// Feature-preserving denoising of meshes and point clouds with the Quadric Error Metric.
@@ -23,7 +23,7 @@ pub struct Cli {
 #[derive(Debug, Subcommand)]
 pub enum Command {
     /// Denoise a mesh or point cloud (format from the extension).
-    Denoise(DenoiseArgs),
+    Denoise(Box<DenoiseArgs>),
     /// Generate a synthetic shape (mesh, or point samples with --points).
     Synth(SynthArgs),
     /// Add seeded noise to a mesh or point cloud.
@@ -47,6 +47,8 @@ pub enum SolveArg {
     Robust,
     /// w = v − (A + λI)⁻¹(Av + b).
     Regularised,
+    /// w = v − (A + μ·tr(A)/3·I)⁻¹(Av + b) (the default).
+    Damped,
 }
 
 /// Method choice on the command line.
@@ -56,6 +58,15 @@ pub enum MethodArg {
     Qem,
     /// Fleishman et al. 2003.
     Bilateral,
+}
+
+/// Plane choice on the command line.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum PlanesArg {
+    /// Filtered face planes (curvature-corrected tangent planes on clouds).
+    Face,
+    /// The paper's tangent planes.
+    Tangent,
 }
 
 /// Normal weighting on the command line.
@@ -84,7 +95,30 @@ pub struct DenoiseArgs {
     /// Denoising method.
     #[arg(long, value_enum, default_value_t = MethodArg::Qem)]
     pub method: MethodArg,
-    /// k-ring size in mesh mode (the vertex itself included).
+    /// The paper's Algorithm 1 exactly (tangent planes, raw normals, one plain-solve pass);
+    /// other flags still override.
+    #[arg(long)]
+    pub paper: bool,
+    /// face (default: filtered face planes; curvature-corrected tangent planes on clouds) or
+    /// tangent (the paper: vertex tangent planes over k-rings / k-NN lists).
+    #[arg(long, value_enum)]
+    pub planes: Option<PlanesArg>,
+    /// Normal-filter iterations per cycle (0: raw normals). Default 10 on meshes, 3 on clouds.
+    #[arg(long)]
+    pub filter: Option<usize>,
+    /// QEM updates per cycle. Default 5 on meshes, 2 on clouds.
+    #[arg(long)]
+    pub updates: Option<usize>,
+    /// Relative step penalty of the damped solve (default 0.5).
+    #[arg(long)]
+    pub mu: Option<f64>,
+    /// Lower bound of the normal filter's range width (default 0.35 meshes, 0.2 clouds).
+    #[arg(long)]
+    pub sigma_r: Option<f64>,
+    /// Do not restore the enclosed volume of closed meshes.
+    #[arg(long)]
+    pub no_volume: bool,
+    /// k-ring size of tangent planes in mesh mode (the vertex itself included).
     #[arg(long)]
     pub rings: Option<usize>,
     /// Neighbourhood size in point mode (the point itself included); forces point mode.
@@ -102,7 +136,8 @@ pub struct DenoiseArgs {
     /// Step penalty of the regularised solve.
     #[arg(long)]
     pub lambda: Option<f64>,
-    /// Number of passes.
+    /// Cycles (QEM: normal filter then updates; 0 chooses from the data on meshes) or passes
+    /// (bilateral, default 3).
     #[arg(long)]
     pub iterations: Option<usize>,
     /// Worker threads (default: all cores); the output is identical for any value.
@@ -152,20 +187,22 @@ pub fn parse_format(s: &str) -> Result<Format, String> {
 }
 
 impl DenoiseArgs {
-    /// The parameters these flags select, on top of the defaults (not yet validated).
+    /// The parameters these flags select, on top of the defaults (or of the paper's operator
+    /// with `--paper`); not yet validated.
     pub fn params(&self) -> Params {
+        let base = if self.paper {
+            Params::paper()
+        } else {
+            Params::default()
+        };
         let mut p = Params {
             method: match self.method {
                 MethodArg::Qem => Method::Qem,
                 MethodArg::Bilateral => Method::Bilateral,
             },
             knn: self.knn,
-            ..Params::default()
+            ..base
         };
-        if p.method == Method::Bilateral {
-            // Fleishman et al. iterate; the paper compares against three passes.
-            p.iterations = 3;
-        }
         if let Some(r) = self.rings {
             p.rings = r;
         }
@@ -175,18 +212,40 @@ impl DenoiseArgs {
                 NormalsArg::Mean => NormalWeighting::Mean,
             };
         }
+        if let Some(pl) = self.planes {
+            p.planes = match pl {
+                PlanesArg::Face => Planes::Face,
+                PlanesArg::Tangent => Planes::Tangent,
+            };
+        }
         if let Some(s) = self.solve {
             p.solve = match s {
                 SolveArg::Plain => SolveKind::Plain,
                 SolveArg::Robust => SolveKind::Robust,
                 SolveArg::Regularised => SolveKind::Regularised,
+                SolveArg::Damped => SolveKind::Damped,
             };
+        }
+        if self.filter.is_some() {
+            p.filter = self.filter;
+        }
+        if self.updates.is_some() {
+            p.updates = self.updates;
         }
         if let Some(e) = self.eps {
             p.eps = e;
         }
         if let Some(l) = self.lambda {
             p.lambda = l;
+        }
+        if let Some(m) = self.mu {
+            p.mu = m;
+        }
+        if self.sigma_r.is_some() {
+            p.sigma_r = self.sigma_r;
+        }
+        if self.no_volume {
+            p.volume = false;
         }
         if let Some(i) = self.iterations {
             p.iterations = i;
@@ -296,12 +355,11 @@ mod tests {
             "in.ply",
             "-o",
             "out.ply",
+            "--paper",
             "--rings",
             "3",
             "--normals",
             "mean",
-            "--solve",
-            "plain",
         ]);
         let Command::Denoise(a) = cli.command else {
             panic!("not denoise")
@@ -310,6 +368,26 @@ mod tests {
         assert_eq!(p.rings, 3);
         assert_eq!(p.normals, NormalWeighting::Mean);
         assert_eq!(p.solve, SolveKind::Plain);
+        assert_eq!(p.planes, Planes::Tangent);
+        assert_eq!((p.filter, p.updates, p.iterations), (Some(0), Some(1), 1));
+        let cli = Cli::parse_from([
+            "qemd",
+            "denoise",
+            "a",
+            "-o",
+            "b",
+            "--filter",
+            "4",
+            "--no-volume",
+        ]);
+        let Command::Denoise(a) = cli.command else {
+            panic!("not denoise")
+        };
+        let q = a.params();
+        assert_eq!(
+            (q.filter, q.volume, q.planes),
+            (Some(4), false, Planes::Face)
+        );
         let cli = Cli::parse_from([
             "qemd",
             "denoise",
@@ -322,7 +400,7 @@ mod tests {
         let Command::Denoise(a) = cli.command else {
             panic!("not denoise")
         };
-        assert_eq!(a.params().iterations, 3);
+        assert_eq!(a.params().schedule(true).cycles, 3);
         assert!(
             Cli::try_parse_from(["qemd", "denoise", "a.ply", "-o", "b", "--format", "doc"])
                 .is_err()

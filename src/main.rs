@@ -40,7 +40,7 @@ fn main() -> ExitCode {
 
 fn run(cli: Cli) -> Result<()> {
     match cli.command {
-        Command::Denoise(a) => denoise(a),
+        Command::Denoise(a) => denoise(*a),
         Command::Synth(a) => synth(a),
         Command::Noise(a) => noise(a),
         Command::Eval(a) => eval(a),
