@@ -97,9 +97,9 @@ pub fn pca_normals(pos: &[DVec3], lists: &Neighbourhoods) -> (Vec<DVec3>, u64) {
 /// `iterations` bilateral filter passes over point normals on the k-NN graph. Each normal becomes
 /// the normalised sum of its neighbours' normals (turned to agree with its own: PCA normals have
 /// no sign) weighted by distance (σs = the point's own k-NN radius, `radii` squared) and by
-/// normal difference (σr = the median difference over its list, at least `sigma_r_floor`: a local
-/// width, so no global statistic is needed and tiles reproduce it exactly). Points without a
-/// normal keep none.
+/// normal difference (σr = the median difference over its list in the input normals, at least
+/// `sigma_r_floor`: a local width, so no global statistic is needed and tiles reproduce it
+/// exactly). Points without a normal keep none.
 pub fn filter_point_normals(
     pos: &[DVec3],
     lists: &Neighbourhoods,
@@ -108,40 +108,64 @@ pub fn filter_point_normals(
     sigma_r_floor: f64,
     iterations: usize,
 ) -> Vec<DVec3> {
+    if iterations == 0 {
+        return normals.to_vec();
+    }
+    // Positions are fixed while the normals are filtered: the spatial weights are computed once.
+    let spatial: Vec<f64> = (0..pos.len())
+        .into_par_iter()
+        .with_min_len(1024)
+        .flat_map_iter(|i| {
+            let ss2 = 2.0 * radii[i].max(f64::MIN_POSITIVE);
+            lists
+                .get(i)
+                .iter()
+                .map(move |&u| (-(pos[i] - pos[u as usize]).length_squared() / ss2).exp())
+        })
+        .collect();
+    // The range width of each point: the median normal difference over its list in the input
+    // normals (at least `sigma_r_floor`), kept for all iterations.
+    let range: Vec<f64> = (0..pos.len())
+        .into_par_iter()
+        .with_min_len(1024)
+        .map_init(Vec::new, |diffs, i| {
+            let ni = normals[i];
+            diffs.clear();
+            diffs.extend(lists.get(i).iter().map(|&u| {
+                let nu = normals[u as usize];
+                let nu = if nu.dot(ni) < 0.0 { -nu } else { nu };
+                (ni - nu).length_squared()
+            }));
+            let m = diffs.len() / 2;
+            let sr2 = if diffs.is_empty() {
+                0.0
+            } else {
+                *diffs.select_nth_unstable_by(m, f64::total_cmp).1
+            };
+            2.0 * sr2.max(sigma_r_floor * sigma_r_floor)
+        })
+        .collect();
     let mut n = normals.to_vec();
     for _ in 0..iterations {
         n = (0..pos.len())
             .into_par_iter()
             .with_min_len(1024)
-            .map_init(Vec::new, |diffs, i| {
+            .map(|i| {
                 let ni = n[i];
                 if ni == DVec3::ZERO {
                     return ni;
                 }
                 let list = lists.get(i);
-                let aligned = |u: u32| {
-                    let nu = n[u as usize];
-                    if nu.dot(ni) < 0.0 { -nu } else { nu }
-                };
-                diffs.clear();
-                diffs.extend(list.iter().map(|&u| (ni - aligned(u)).length()));
-                let m = diffs.len() / 2;
-                let sr = if diffs.is_empty() {
-                    sigma_r_floor
-                } else {
-                    *diffs.select_nth_unstable_by(m, f64::total_cmp).1
-                }
-                .max(sigma_r_floor);
-                let (ss2, sr2) = (2.0 * radii[i].max(f64::MIN_POSITIVE), 2.0 * sr * sr);
+                let ws = &spatial[lists.offsets[i] as usize..lists.offsets[i + 1] as usize];
                 let mut s = DVec3::ZERO;
-                for &u in list {
-                    let nu = aligned(u);
+                for (&u, &w) in list.iter().zip(ws) {
+                    let nu = n[u as usize];
+                    let nu = if nu.dot(ni) < 0.0 { -nu } else { nu };
                     if nu == DVec3::ZERO {
                         continue;
                     }
-                    let ws = (-(pos[i] - pos[u as usize]).length_squared() / ss2).exp();
-                    let wr = (-(ni - nu).length_squared() / sr2).exp();
-                    s += nu * (ws * wr);
+                    let wr = (-(ni - nu).length_squared() / range[i]).exp();
+                    s += nu * (w * wr);
                 }
                 let s = s.normalize_or_zero();
                 if s == DVec3::ZERO { ni } else { s }
