@@ -23,13 +23,13 @@ use serde_json::{Map, Value, json};
 
 use super::auth::Tenant;
 use super::uploads::parse_query;
-use super::{ApiError, AppState, media_type, timestamp};
+use super::{ApiError, AppState, media_type, read_limited, timestamp};
 use crate::denoise::{Method, Params};
 use crate::jobs::{JobInfo, JobRequest, Status};
 use crate::pipeline::OutlierMode;
 
 /// Largest job submission body.
-const MAX_JSON: usize = 64 << 10;
+const MAX_JSON: u64 = 64 << 10;
 
 /// The name of the field a serde error is about: the path when it has one, else the field the
 /// message quotes (`missing field `x``, `unknown field `x``).
@@ -192,11 +192,7 @@ pub async fn create(
             "a job is submitted as application/json".into(),
         ));
     }
-    let bytes = axum::body::to_bytes(body, MAX_JSON).await.map_err(|_| {
-        ApiError::TooLarge {
-            limit: MAX_JSON as u64,
-        }
-    })?;
+    let bytes = read_limited(&headers, body, MAX_JSON).await?;
     let value: Value = serde_json::from_slice(&bytes)
         .map_err(|e| ApiError::BadRequest(format!("the body is not JSON: {e}")))?;
     if !value.is_object() {

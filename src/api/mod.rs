@@ -192,6 +192,38 @@ pub(crate) fn format_of_media_type(headers: &HeaderMap) -> Option<Option<&'stati
     }
 }
 
+/// Collects a body of at most `limit` bytes (the announced `Content-Length` is checked first).
+/// An oversized body is drained (up to [`crate::jobs::DRAIN_MAX`]) before the 413, so the client
+/// reads the answer rather than a reset.
+pub(crate) async fn read_limited(
+    headers: &HeaderMap,
+    body: axum::body::Body,
+    limit: u64,
+) -> Result<axum::body::Bytes, ApiError> {
+    use futures_util::StreamExt;
+    let mut stream = body.into_data_stream();
+    let announced = headers
+        .get(header::CONTENT_LENGTH)
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.trim().parse::<u64>().ok());
+    if let Some(n) = announced.filter(|&n| n > limit) {
+        if n - limit <= crate::jobs::DRAIN_MAX {
+            crate::jobs::discard(&mut stream, n).await;
+        }
+        return Err(ApiError::TooLarge { limit });
+    }
+    let mut buf = Vec::with_capacity(usize::try_from(announced.unwrap_or(0)).unwrap_or(0));
+    while let Some(chunk) = stream.next().await {
+        let chunk = chunk.map_err(|e| ApiError::BadRequest(format!("reading the body: {e}")))?;
+        if (buf.len() + chunk.len()) as u64 > limit {
+            crate::jobs::discard(&mut stream, crate::jobs::DRAIN_MAX).await;
+            return Err(ApiError::TooLarge { limit });
+        }
+        buf.extend_from_slice(&chunk);
+    }
+    Ok(buf.into())
+}
+
 /// The media type a result is served with.
 pub(crate) fn media_type_of(ext: &str) -> &'static str {
     match ext {

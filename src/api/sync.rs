@@ -18,7 +18,7 @@ use serde_json::{Map, Value};
 
 use super::auth::Tenant;
 use super::jobs::params_from;
-use super::{ApiError, AppState, format_of_media_type, media_type, media_type_of};
+use super::{ApiError, AppState, format_of_media_type, media_type, media_type_of, read_limited};
 use crate::io::sniff::{SNIFF_LEN, sniff};
 use crate::jobs::{SyncRequest, canonical_format};
 
@@ -74,24 +74,7 @@ pub async fn denoise(
             media_type(&headers).unwrap_or_default()
         ))
     })?;
-    let limit = state.settings.max_sync_size;
-    let announced = headers
-        .get(header::CONTENT_LENGTH)
-        .and_then(|v| v.to_str().ok())
-        .and_then(|v| v.parse::<u64>().ok());
-    if announced.is_some_and(|n| n > limit) {
-        return Err(ApiError::TooLarge { limit });
-    }
-    let cap = usize::try_from(limit).unwrap_or(usize::MAX);
-    let bytes = axum::body::to_bytes(body, cap).await.map_err(|e| {
-        let too_large = std::error::Error::source(&e)
-            .is_some_and(|s| s.is::<http_body_util::LengthLimitError>());
-        if too_large {
-            ApiError::TooLarge { limit }
-        } else {
-            ApiError::BadRequest(format!("reading the body: {e}"))
-        }
-    })?;
+    let bytes = read_limited(&headers, body, state.settings.max_sync_size).await?;
     let format = match format.or(from_type.map(str::to_string)) {
         Some(f) => canonical_format(&f).ok_or_else(|| {
             ApiError::UnsupportedMediaType(format!(
@@ -118,7 +101,18 @@ pub async fn denoise(
                 output_format,
             },
         )
-        .await?;
+        .await
+        .map_err(|e| match ApiError::from(e) {
+            // Query parameters carry the bare names (`knn`, not `params.knn`).
+            ApiError::Unprocessable {
+                field: Some(f),
+                detail,
+            } => ApiError::Unprocessable {
+                field: Some(f.strip_prefix("params.").unwrap_or(&f).to_string()),
+                detail,
+            },
+            other => other,
+        })?;
     let mut r = (StatusCode::OK, out.bytes).into_response();
     let h = r.headers_mut();
     h.insert(

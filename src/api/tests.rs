@@ -289,7 +289,7 @@ async fn sync_denoise_and_its_refusals() {
     .await;
     assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY);
     let v: serde_json::Value = serde_json::from_slice(&body).unwrap();
-    assert_eq!(v["field"], "params.knn");
+    assert_eq!(v["field"], "knn");
 
     let (status, _, _) = send(
         &app,

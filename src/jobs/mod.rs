@@ -37,7 +37,7 @@ mod service;
 pub mod store;
 mod uploads;
 
-pub use uploads::check_hint;
+pub use uploads::{DRAIN_MAX, check_hint, discard};
 pub use service::{
     FormatHint, JobInfo, JobRequest, Jobs, ResultFile, Settings, SyncOutput, SyncRequest,
     canonical_format, output_format_for,

@@ -34,6 +34,25 @@ impl Drop for RemoveOnDrop {
     }
 }
 
+/// How much of an oversized body is read and discarded before the 413 goes out: a client still
+/// sending when the server answers and closes would see a reset instead of the answer.
+pub const DRAIN_MAX: u64 = 8 << 20;
+
+/// Reads and discards up to `max` more bytes of `body` (see [`DRAIN_MAX`]).
+pub async fn discard<S, B, E>(body: &mut S, max: u64)
+where
+    S: Stream<Item = Result<B, E>> + Unpin + Send,
+    B: AsRef<[u8]>,
+{
+    let mut seen = 0u64;
+    while seen <= max {
+        match body.next().await {
+            Some(Ok(chunk)) => seen += chunk.as_ref().len() as u64,
+            _ => break,
+        }
+    }
+}
+
 /// The format a client declared, checked.
 fn declared(hint: &super::FormatHint) -> Result<Option<String>, JobsError> {
     if let Some(f) = &hint.format {
@@ -153,8 +172,13 @@ impl Jobs {
         B: AsRef<[u8]>,
         E: std::fmt::Display,
     {
-        if let Some(n) = length {
-            self.check_size(n)?;
+        if let Some(n) = length
+            && let Err(e) = self.check_size(n)
+        {
+            if n - self.inner.settings.max_upload_size <= DRAIN_MAX {
+                discard(&mut body, n).await;
+            }
+            return Err(e);
         }
         let declared = declared(&hint)?;
         let id = new_id();
@@ -170,7 +194,10 @@ impl Jobs {
             let chunk = chunk.map_err(|e| JobsError::BadRequest(format!("reading the body: {e}")))?;
             let bytes = chunk.as_ref();
             size += bytes.len() as u64;
-            self.check_size(size)?;
+            if let Err(e) = self.check_size(size) {
+                discard(&mut body, DRAIN_MAX).await;
+                return Err(e);
+            }
             hasher.update(bytes);
             out.write_all(bytes)
                 .await
@@ -351,6 +378,7 @@ impl Jobs {
             };
             if size + bytes.len() as u64 > length {
                 broken = Some(JobsError::TooLarge { limit: length });
+                discard(&mut body, DRAIN_MAX).await;
                 break;
             }
             out.write_all(bytes)
