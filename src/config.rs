@@ -167,9 +167,7 @@ impl Config {
             }
             let ok = |c: char| c.is_ascii_alphanumeric() || c == '-' || c == '_';
             if tenant.is_empty() || tenant.len() > 64 || !tenant.chars().all(ok) {
-                return Err(bad(
-                    "a tenant must be 1 to 64 letters, digits, '-' or '_'",
-                ));
+                return Err(bad("a tenant must be 1 to 64 letters, digits, '-' or '_'"));
             }
             if out.iter().any(|(t, _)| t == token) {
                 return Err(bad("a token is given twice"));

@@ -10,8 +10,8 @@ use std::time::Duration;
 use anyhow::{Context, Result};
 use clap::Parser;
 
-use qem_denoise::api::server::{Server, ServeOptions, shutdown_signal};
 use qem_denoise::api::ApiSettings;
+use qem_denoise::api::server::{ServeOptions, Server, shutdown_signal};
 use qem_denoise::cli::{
     Cli, Command, DemoArgs, DenoiseArgs, EvalArgs, NoiseArgs, OutliersArg, RenderArgs, ServeArgs,
     SynthArgs, TableArgs,

@@ -38,7 +38,10 @@ fn instructions(text: &str) -> Vec<(String, String)> {
             }
             None => {
                 current.push_str(t);
-                let (op, args) = current.trim().split_once(' ').unwrap_or((current.trim(), ""));
+                let (op, args) = current
+                    .trim()
+                    .split_once(' ')
+                    .unwrap_or((current.trim(), ""));
                 out.push((op.to_ascii_uppercase(), args.trim().to_string()));
                 current.clear();
             }
@@ -85,12 +88,25 @@ fn dockerfile_paths_and_keys() {
         }
     }
     // The non-root user, the health check and the config file the command names.
-    let user = ins.iter().rev().find(|(op, _)| op == "USER").map(|(_, a)| a.as_str());
-    assert!(user.is_some_and(|u| u != "root" && u != "0"), "runs as {user:?}");
-    let health = ins.iter().find(|(op, _)| op == "HEALTHCHECK").map(|(_, a)| a.clone());
+    let user = ins
+        .iter()
+        .rev()
+        .find(|(op, _)| op == "USER")
+        .map(|(_, a)| a.as_str());
+    assert!(
+        user.is_some_and(|u| u != "root" && u != "0"),
+        "runs as {user:?}"
+    );
+    let health = ins
+        .iter()
+        .find(|(op, _)| op == "HEALTHCHECK")
+        .map(|(_, a)| a.clone());
     assert!(health.is_some_and(|h| h.contains("/healthz")));
     let cmd = &ins.iter().rev().find(|(op, _)| op == "CMD").unwrap().1;
-    for word in cmd.split(['"', ',', '[', ']', ' ']).filter(|w| w.starts_with('/')) {
+    for word in cmd
+        .split(['"', ',', '[', ']', ' '])
+        .filter(|w| w.starts_with('/'))
+    {
         assert!(
             copied_to.iter().any(|d| d == word),
             "CMD names {word}, which no COPY provides"
@@ -131,7 +147,10 @@ fn compose_paths_and_keys() {
         for v in svc["volumes"].as_array().into_iter().flatten() {
             let source = v.as_str().unwrap_or_default().split(':').next().unwrap();
             if source.starts_with('.') || source.starts_with('/') {
-                assert!(rel(source).exists(), "{name}: volume source {source} missing");
+                assert!(
+                    rel(source).exists(),
+                    "{name}: volume source {source} missing"
+                );
             }
         }
     }
@@ -147,7 +166,10 @@ fn compose_paths_and_keys() {
 /// unknown key or a bad value.
 fn check_config_file(path: &Path) {
     let c = Config::load(Some(path)).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
-    assert!(c.listen.starts_with("0.0.0.0:"), "a container must listen on all interfaces");
+    assert!(
+        c.listen.starts_with("0.0.0.0:"),
+        "a container must listen on all interfaces"
+    );
 }
 
 #[test]

@@ -9,8 +9,8 @@ use std::time::{Duration, Instant};
 use glam::DVec3;
 use qem_denoise::io::Cloud;
 use qem_denoise::points::ScalarType;
-use reqwest::blocking::{Client, Response};
 use reqwest::StatusCode;
+use reqwest::blocking::{Client, Response};
 use serde_json::{Value, json};
 use sha2::{Digest, Sha256};
 
@@ -166,7 +166,11 @@ fn upload(c: &Client, s: &Server, query: &str, bytes: Vec<u8>) -> Value {
     v
 }
 
-fn post_job(c: &Client, s: &Server, body: &Value) -> (StatusCode, reqwest::header::HeaderMap, Value) {
+fn post_job(
+    c: &Client,
+    s: &Server,
+    body: &Value,
+) -> (StatusCode, reqwest::header::HeaderMap, Value) {
     json_of(
         c.post(s.url("/v1/jobs"))
             .header("content-type", "application/json")
@@ -217,9 +221,16 @@ fn wait_for(c: &Client, s: &Server, id: &str, what: &str, ok: impl Fn(&Value) ->
 }
 
 fn download(c: &Client, s: &Server, id: &str) -> Vec<u8> {
-    let r = c.get(s.url(&format!("/v1/jobs/{id}/result"))).send().unwrap();
+    let r = c
+        .get(s.url(&format!("/v1/jobs/{id}/result")))
+        .send()
+        .unwrap();
     assert_eq!(r.status(), StatusCode::OK);
-    let len: usize = r.headers()["content-length"].to_str().unwrap().parse().unwrap();
+    let len: usize = r.headers()["content-length"]
+        .to_str()
+        .unwrap()
+        .parse()
+        .unwrap();
     let bytes = r.bytes().unwrap().to_vec();
     assert_eq!(bytes.len(), len);
     bytes
@@ -238,7 +249,10 @@ fn run_job(c: &Client, s: &Server, body: Value) -> (Value, Vec<u8>) {
     assert_eq!(status, StatusCode::CREATED, "{v}");
     assert_eq!(v["status"], "accepted");
     let id = v["id"].as_str().unwrap().to_string();
-    assert_eq!(headers["location"].to_str().unwrap(), format!("/v1/jobs/{id}"));
+    assert_eq!(
+        headers["location"].to_str().unwrap(),
+        format!("/v1/jobs/{id}")
+    );
     let done = wait(c, s, &id);
     assert_eq!(done["status"], "successful", "{done}\nlog:\n{}", s.log());
     let bytes = download(c, s, &id);
@@ -296,12 +310,22 @@ fn ply_and_las_jobs_write_what_the_cli_writes() {
     assert!(bytes == want, "LAZ result differs from the CLI's");
 
     // The job list has both, newest first, and filters by status.
-    let (status, _, v) = json_of(c.get(s.url("/v1/jobs?status=successful&limit=1")).send().unwrap());
+    let (status, _, v) = json_of(
+        c.get(s.url("/v1/jobs?status=successful&limit=1"))
+            .send()
+            .unwrap(),
+    );
     assert_eq!(status, StatusCode::OK);
     assert_eq!(v["total"], 2);
     assert_eq!(v["jobs"].as_array().unwrap().len(), 1);
     assert_eq!(v["jobs"][0]["output_format"], "laz");
-    assert!(v["links"].as_array().unwrap().iter().any(|l| l["rel"] == "next"));
+    assert!(
+        v["links"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|l| l["rel"] == "next")
+    );
     let (_, _, v) = json_of(c.get(s.url("/v1/jobs?status=failed")).send().unwrap());
     assert_eq!(v["total"], 0);
 }
@@ -331,7 +355,10 @@ fn resumable_upload_in_chunks_has_the_same_sha256() {
         let r = c.head(&loc).send().unwrap();
         assert_eq!(r.status(), StatusCode::OK);
         assert_eq!(r.headers()["upload-offset"], offset.to_string().as_str());
-        assert_eq!(r.headers()["upload-length"], data.len().to_string().as_str());
+        assert_eq!(
+            r.headers()["upload-length"],
+            data.len().to_string().as_str()
+        );
         let r = c
             .patch(&loc)
             .header("content-type", "application/offset+octet-stream")
@@ -373,8 +400,14 @@ fn resumable_upload_in_chunks_has_the_same_sha256() {
     let pid = partial.rsplit('/').next().unwrap();
     let (status, _, v) = post_job(&c, &s, &json!({"input": pid}));
     assert_eq!(status, StatusCode::CONFLICT, "{v}");
-    assert_eq!(c.delete(s.url(&partial)).send().unwrap().status(), StatusCode::NO_CONTENT);
-    assert_eq!(c.get(s.url(&partial)).send().unwrap().status(), StatusCode::NOT_FOUND);
+    assert_eq!(
+        c.delete(s.url(&partial)).send().unwrap().status(),
+        StatusCode::NO_CONTENT
+    );
+    assert_eq!(
+        c.get(s.url(&partial)).send().unwrap().status(),
+        StatusCode::NOT_FOUND
+    );
 }
 
 #[test]
@@ -411,7 +444,11 @@ fn downloads_support_range_and_etag() {
     assert_eq!(r.status(), StatusCode::PARTIAL_CONTENT);
     assert_eq!(r.bytes().unwrap().to_vec(), full[size - 50..].to_vec());
 
-    let r = c.get(&url).header("range", format!("bytes={size}-")).send().unwrap();
+    let r = c
+        .get(&url)
+        .header("range", format!("bytes={size}-"))
+        .send()
+        .unwrap();
     assert_eq!(r.status(), StatusCode::RANGE_NOT_SATISFIABLE);
     assert_eq!(
         r.headers()["content-range"].to_str().unwrap(),
@@ -462,7 +499,10 @@ fn bad_input_gets_problem_details() {
     };
 
     // Too large: announced, streamed (chunked, no length), resumable, synchronous.
-    problem(post_upload("", vec![b'1'; 300 << 10]), StatusCode::PAYLOAD_TOO_LARGE);
+    problem(
+        post_upload("", vec![b'1'; 300 << 10]),
+        StatusCode::PAYLOAD_TOO_LARGE,
+    );
     let chunked = reqwest::blocking::Body::new(std::io::Cursor::new(vec![b'1'; 300 << 10]));
     problem(
         c.post(s.url("/v1/uploads"))
@@ -493,12 +533,27 @@ fn bad_input_gets_problem_details() {
 
     // Bad content, unknown and unsupported formats.
     let v = problem(
-        post_upload("?format=ply", b"ply\nformat ascii 1.0\nelement vertex 3\nbogus\n".to_vec()),
+        post_upload(
+            "?format=ply",
+            b"ply\nformat ascii 1.0\nelement vertex 3\nbogus\n".to_vec(),
+        ),
         StatusCode::UNPROCESSABLE_ENTITY,
     );
-    assert!(!v["detail"].as_str().unwrap().contains(s.data.to_str().unwrap()), "{v}");
-    problem(post_upload("", b"hello, I am not a scan\n".to_vec()), StatusCode::UNSUPPORTED_MEDIA_TYPE);
-    problem(post_upload("?format=doc", b"0 0 0\n".to_vec()), StatusCode::UNSUPPORTED_MEDIA_TYPE);
+    assert!(
+        !v["detail"]
+            .as_str()
+            .unwrap()
+            .contains(s.data.to_str().unwrap()),
+        "{v}"
+    );
+    problem(
+        post_upload("", b"hello, I am not a scan\n".to_vec()),
+        StatusCode::UNSUPPORTED_MEDIA_TYPE,
+    );
+    problem(
+        post_upload("?format=doc", b"0 0 0\n".to_vec()),
+        StatusCode::UNSUPPORTED_MEDIA_TYPE,
+    );
     problem(
         c.post(s.url("/v1/uploads"))
             .header("content-type", "application/json")
@@ -507,16 +562,27 @@ fn bad_input_gets_problem_details() {
             .unwrap(),
         StatusCode::UNSUPPORTED_MEDIA_TYPE,
     );
-    problem(post_upload("?colour=red", b"0 0 0\n".to_vec()), StatusCode::BAD_REQUEST);
+    problem(
+        post_upload("?colour=red", b"0 0 0\n".to_vec()),
+        StatusCode::BAD_REQUEST,
+    );
     // KITTI has no signature: refused unless named, accepted when named.
     let kitti: Vec<u8> = (0..64u32)
         .flat_map(|i| {
-            [(i % 8) as f32, (i / 8) as f32, ((i * 7) % 5) as f32 * 0.01, 0.5]
-                .into_iter()
-                .flat_map(f32::to_le_bytes)
+            [
+                (i % 8) as f32,
+                (i / 8) as f32,
+                ((i * 7) % 5) as f32 * 0.01,
+                0.5,
+            ]
+            .into_iter()
+            .flat_map(f32::to_le_bytes)
         })
         .collect();
-    problem(post_upload("", kitti.clone()), StatusCode::UNSUPPORTED_MEDIA_TYPE);
+    problem(
+        post_upload("", kitti.clone()),
+        StatusCode::UNSUPPORTED_MEDIA_TYPE,
+    );
     let k = upload(&c, &s, "?format=bin", kitti);
     assert_eq!(k["format"], "bin");
     assert_eq!(k["points"], 64);
@@ -535,18 +601,39 @@ fn bad_input_gets_problem_details() {
         assert!(v["detail"].as_str().unwrap().contains(want), "{v}");
     };
     let kid = k["id"].as_str().unwrap();
-    field(json!({"input": "00000000-0000-4000-8000-000000000000"}), "input");
+    field(
+        json!({"input": "00000000-0000-4000-8000-000000000000"}),
+        "input",
+    );
     field(json!({"input": "../../etc/passwd"}), "input");
     field(json!({}), "input");
     field(json!({"input": kid, "params": {"knn": 1}}), "params.knn");
-    field(json!({"input": kid, "params": {"knn": "many"}}), "params.knn");
+    field(
+        json!({"input": kid, "params": {"knn": "many"}}),
+        "params.knn",
+    );
     field(json!({"input": kid, "params": {"knnn": 16}}), "params.knnn");
-    field(json!({"input": kid, "params": {"solve": "magic"}}), "params.solve");
+    field(
+        json!({"input": kid, "params": {"solve": "magic"}}),
+        "params.solve",
+    );
     field(json!({"input": kid, "params": {"eps": 2.0}}), "params.eps");
-    field(json!({"input": kid, "params": {"iterations": 0}}), "params.iterations");
-    field(json!({"input": kid, "params": {"outlier_alpha": -1.0}}), "outlier_alpha");
-    field(json!({"input": kid, "output_format": "doc"}), "output_format");
-    field(json!({"input": kid, "params": {"outliers": "classify"}}), "outliers");
+    field(
+        json!({"input": kid, "params": {"iterations": 0}}),
+        "params.iterations",
+    );
+    field(
+        json!({"input": kid, "params": {"outlier_alpha": -1.0}}),
+        "outlier_alpha",
+    );
+    field(
+        json!({"input": kid, "output_format": "doc"}),
+        "output_format",
+    );
+    field(
+        json!({"input": kid, "params": {"outliers": "classify"}}),
+        "outliers",
+    );
     field(json!({"input": kid, "colour": "red"}), "colour");
     problem(
         c.post(s.url("/v1/jobs"))
@@ -575,7 +662,12 @@ fn bad_input_gets_problem_details() {
     ] {
         problem(c.get(s.url(&path)).send().unwrap(), StatusCode::NOT_FOUND);
     }
-    problem(c.delete(s.url(&format!("/v1/jobs/{unknown}"))).send().unwrap(), StatusCode::NOT_FOUND);
+    problem(
+        c.delete(s.url(&format!("/v1/jobs/{unknown}")))
+            .send()
+            .unwrap(),
+        StatusCode::NOT_FOUND,
+    );
     problem(
         c.patch(s.url(&format!("/v1/uploads/{unknown}")))
             .header("content-type", "application/offset+octet-stream")
@@ -585,9 +677,15 @@ fn bad_input_gets_problem_details() {
             .unwrap(),
         StatusCode::NOT_FOUND,
     );
-    let v = problem(c.get(s.url("/v1/jobs?status=done")).send().unwrap(), StatusCode::UNPROCESSABLE_ENTITY);
+    let v = problem(
+        c.get(s.url("/v1/jobs?status=done")).send().unwrap(),
+        StatusCode::UNPROCESSABLE_ENTITY,
+    );
     assert_eq!(v["field"], "status");
-    problem(c.get(s.url("/v1/jobs?limit=0")).send().unwrap(), StatusCode::UNPROCESSABLE_ENTITY);
+    problem(
+        c.get(s.url("/v1/jobs?limit=0")).send().unwrap(),
+        StatusCode::UNPROCESSABLE_ENTITY,
+    );
 
     // The synchronous path refuses bad parameters and content too.
     let v = problem(
@@ -622,7 +720,12 @@ fn tenants_see_only_their_own_uploads_and_jobs() {
     let c = client();
     let (alice, bob) = ("Bearer token-alice-1", "Bearer token-bob-22");
 
-    for auth in [None, Some("Bearer wrong-token"), Some("token-alice-1"), Some("Basic abc")] {
+    for auth in [
+        None,
+        Some("Bearer wrong-token"),
+        Some("token-alice-1"),
+        Some("Basic abc"),
+    ] {
         let mut r = c.get(s.url("/v1/jobs"));
         if let Some(a) = auth {
             r = r.header("authorization", a);
@@ -634,7 +737,10 @@ fn tenants_see_only_their_own_uploads_and_jobs() {
         assert_eq!(v["status"], 401);
     }
     // Operations endpoints stay open.
-    assert_eq!(c.get(s.url("/healthz")).send().unwrap().status(), StatusCode::OK);
+    assert_eq!(
+        c.get(s.url("/healthz")).send().unwrap().status(),
+        StatusCode::OK
+    );
 
     let path = d.path().join("in.ply");
     write_cloud(&path, 2000, 9);
@@ -679,9 +785,18 @@ fn tenants_see_only_their_own_uploads_and_jobs() {
         format!("/v1/jobs/{jid}"),
         format!("/v1/jobs/{jid}/result"),
     ] {
-        let (status, _, v) = json_of(c.get(s.url(&path)).header("authorization", bob).send().unwrap());
+        let (status, _, v) = json_of(
+            c.get(s.url(&path))
+                .header("authorization", bob)
+                .send()
+                .unwrap(),
+        );
         assert_eq!(status, StatusCode::NOT_FOUND, "{path}: {v}");
-        let ok = c.get(s.url(&path)).header("authorization", alice).send().unwrap();
+        let ok = c
+            .get(s.url(&path))
+            .header("authorization", alice)
+            .send()
+            .unwrap();
         assert_eq!(ok.status(), StatusCode::OK, "{path}");
     }
     assert_eq!(
@@ -702,15 +817,29 @@ fn tenants_see_only_their_own_uploads_and_jobs() {
     );
     assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY);
     assert_eq!(v["field"], "input");
-    let (_, _, v) = json_of(c.get(s.url("/v1/jobs")).header("authorization", bob).send().unwrap());
+    let (_, _, v) = json_of(
+        c.get(s.url("/v1/jobs"))
+            .header("authorization", bob)
+            .send()
+            .unwrap(),
+    );
     assert_eq!(v["total"], 0);
-    let (_, _, v) = json_of(c.get(s.url("/v1/jobs")).header("authorization", alice).send().unwrap());
+    let (_, _, v) = json_of(
+        c.get(s.url("/v1/jobs"))
+            .header("authorization", alice)
+            .send()
+            .unwrap(),
+    );
     assert_eq!(v["total"], 1);
 }
 
 /// Points of the long jobs: a few seconds of work in either build.
 fn long_job_points() -> u64 {
-    if cfg!(debug_assertions) { 300_000 } else { 3_000_000 }
+    if cfg!(debug_assertions) {
+        300_000
+    } else {
+        3_000_000
+    }
 }
 
 fn synth(path: &Path, points: u64) {
@@ -760,7 +889,14 @@ fn full_queue_answers_429_and_delete_cancels_within_a_second() {
     let b = b["id"].as_str().unwrap().to_string();
     let (status, headers, v) = post_job(&c, &s, &body);
     assert_eq!(status, StatusCode::TOO_MANY_REQUESTS, "{v}");
-    assert!(headers["retry-after"].to_str().unwrap().parse::<u64>().unwrap() >= 1);
+    assert!(
+        headers["retry-after"]
+            .to_str()
+            .unwrap()
+            .parse::<u64>()
+            .unwrap()
+            >= 1
+    );
     assert_eq!(headers["content-type"], "application/problem+json");
 
     // DELETE the running job: cancelled, dismissed, its files gone; the worker is free again
@@ -770,19 +906,31 @@ fn full_queue_answers_429_and_delete_cancels_within_a_second() {
     let (status, _, v) = json_of(c.delete(s.url(&format!("/v1/jobs/{a}"))).send().unwrap());
     assert_eq!(status, StatusCode::OK, "{v}");
     assert_eq!(v["status"], "dismissed");
-    assert!(!s.data.join("jobs").join(&a).exists(), "job files left behind");
+    assert!(
+        !s.data.join("jobs").join(&a).exists(),
+        "job files left behind"
+    );
     wait_for(&c, &s, &b, "running", |v| v["status"] == "running");
     let took = t0.elapsed();
-    assert!(took < Duration::from_millis(1200), "cancellation took {took:?}");
+    assert!(
+        took < Duration::from_millis(1200),
+        "cancellation took {took:?}"
+    );
     assert_eq!(job(&c, &s, &a)["status"], "dismissed");
     assert_eq!(
-        c.get(s.url(&format!("/v1/jobs/{a}/result"))).send().unwrap().status(),
+        c.get(s.url(&format!("/v1/jobs/{a}/result")))
+            .send()
+            .unwrap()
+            .status(),
         StatusCode::NOT_FOUND
     );
 
     // Dismiss B too; the queue has room again.
     let (status, _, v) = json_of(c.delete(s.url(&format!("/v1/jobs/{b}"))).send().unwrap());
-    assert_eq!((status, v["status"].as_str()), (StatusCode::OK, Some("dismissed")));
+    assert_eq!(
+        (status, v["status"].as_str()),
+        (StatusCode::OK, Some("dismissed"))
+    );
     assert!(!s.data.join("jobs").join(&b).exists());
     let start = Instant::now();
     while jobs_running(&c, &s) != "qemd_jobs_running 0" {
@@ -805,7 +953,15 @@ fn killed_server_resumes_the_job_from_its_checkpoints() {
     let mut s = Server::start(d.path(), config, &[]);
     let c = client();
     let path = d.path().join("in.ply");
-    write_cloud(&path, if cfg!(debug_assertions) { 20_000 } else { 60_000 }, 21);
+    write_cloud(
+        &path,
+        if cfg!(debug_assertions) {
+            20_000
+        } else {
+            60_000
+        },
+        21,
+    );
     let up = upload(&c, &s, "", std::fs::read(&path).unwrap());
     let (status, _, v) = post_job(&c, &s, &json!({"input": up["id"]}));
     assert_eq!(status, StatusCode::CREATED);
@@ -827,7 +983,11 @@ fn killed_server_resumes_the_job_from_its_checkpoints() {
             .unwrap_or(0)
     };
     while checkpoints(&work) == 0 {
-        assert!(start.elapsed() < Duration::from_secs(300), "no checkpoint; log:\n{}", s.log());
+        assert!(
+            start.elapsed() < Duration::from_secs(300),
+            "no checkpoint; log:\n{}",
+            s.log()
+        );
         std::thread::sleep(Duration::from_millis(1));
     }
     s.kill();
@@ -843,12 +1003,21 @@ fn killed_server_resumes_the_job_from_its_checkpoints() {
         report["tiles"].as_u64().unwrap(),
         report["tiles_resumed"].as_u64().unwrap(),
     );
-    assert!(resumed >= 1 && resumed < tiles, "resumed {resumed} of {tiles} tiles");
+    assert!(
+        resumed >= 1 && resumed < tiles,
+        "resumed {resumed} of {tiles} tiles"
+    );
     assert!(s.log().contains("re-queued"));
     let bytes = download(&c, &s, &id);
     let want = cli(&path, &d.path().join("cli.ply"), &[]);
-    assert!(bytes == want, "resumed result differs from an uninterrupted CLI run");
-    assert!(!work.exists(), "the work directory is removed after success");
+    assert!(
+        bytes == want,
+        "resumed result differs from an uninterrupted CLI run"
+    );
+    assert!(
+        !work.exists(),
+        "the work directory is removed after success"
+    );
 }
 
 #[test]
@@ -859,7 +1028,10 @@ fn operations_endpoints_and_graceful_shutdown() {
     let (status, _, v) = json_of(c.get(s.url("/healthz")).send().unwrap());
     assert_eq!((status, v["status"].as_str()), (StatusCode::OK, Some("ok")));
     let (status, _, v) = json_of(c.get(s.url("/readyz")).send().unwrap());
-    assert_eq!((status, v["status"].as_str()), (StatusCode::OK, Some("ready")));
+    assert_eq!(
+        (status, v["status"].as_str()),
+        (StatusCode::OK, Some("ready"))
+    );
     let (status, _, doc) = json_of(c.get(s.url("/openapi.json")).send().unwrap());
     assert_eq!(status, StatusCode::OK);
     assert!(doc["paths"]["/v1/jobs/{id}/result"]["get"].is_object());
@@ -879,11 +1051,19 @@ fn operations_endpoints_and_graceful_shutdown() {
     assert_eq!(r.headers()["x-request-id"], "req-sync-1");
     assert_eq!(r.headers()["x-qemd-points-in"], "2500");
     let want = cli(&path, &d.path().join("cli.ply"), &["--knn", "8"]);
-    assert!(r.bytes().unwrap().to_vec() == want, "sync result differs from the CLI's");
+    assert!(
+        r.bytes().unwrap().to_vec() == want,
+        "sync result differs from the CLI's"
+    );
 
     let r = c.get(s.url("/metrics")).send().unwrap();
     assert_eq!(r.status(), StatusCode::OK);
-    assert!(r.headers()["content-type"].to_str().unwrap().starts_with("text/plain"));
+    assert!(
+        r.headers()["content-type"]
+            .to_str()
+            .unwrap()
+            .starts_with("text/plain")
+    );
     let text = r.text().unwrap();
     for line in [
         "qemd_jobs{state=\"successful\"} 1",
@@ -895,7 +1075,10 @@ fn operations_endpoints_and_graceful_shutdown() {
         "qemd_sync_requests_total{outcome=\"ok\"} 1",
         "qemd_uploads_total 1",
     ] {
-        assert!(text.lines().any(|l| l == line), "missing `{line}` in\n{text}");
+        assert!(
+            text.lines().any(|l| l == line),
+            "missing `{line}` in\n{text}"
+        );
     }
     assert!(text.contains("qemd_phase_duration_seconds_bucket{phase=\"read\""));
     assert!(text.contains("qemd_run_duration_seconds_count{path=\"job\"} 1"));
@@ -907,18 +1090,30 @@ fn operations_endpoints_and_graceful_shutdown() {
         .find(|l| l.contains("req-sync-1"))
         .unwrap_or_else(|| panic!("request id not logged:\n{log}"));
     let v: Value = serde_json::from_str(line).unwrap();
-    assert!(v["timestamp"].is_string() && v["level"].is_string(), "{line}");
+    assert!(
+        v["timestamp"].is_string() && v["level"].is_string(),
+        "{line}"
+    );
 
     // SIGTERM: a clean exit.
     let mut s = s;
     let pid = s.child.id().to_string();
-    assert!(Command::new("kill").args(["-TERM", &pid]).status().unwrap().success());
+    assert!(
+        Command::new("kill")
+            .args(["-TERM", &pid])
+            .status()
+            .unwrap()
+            .success()
+    );
     let start = Instant::now();
     let status = loop {
         if let Some(st) = s.child.try_wait().unwrap() {
             break st;
         }
-        assert!(start.elapsed() < Duration::from_secs(15), "no exit after SIGTERM");
+        assert!(
+            start.elapsed() < Duration::from_secs(15),
+            "no exit after SIGTERM"
+        );
         std::thread::sleep(Duration::from_millis(20));
     };
     assert!(status.success(), "{status:?}\n{}", s.log());

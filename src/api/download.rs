@@ -93,7 +93,11 @@ pub async fn result(
 ) -> Result<Response, ApiError> {
     let r = state.jobs.result(&tenant, &id).await?;
     let etag = format!("\"{}\"", r.sha256);
-    let text = |name| headers.get(name).and_then(|v: &HeaderValue| v.to_str().ok());
+    let text = |name| {
+        headers
+            .get(name)
+            .and_then(|v: &HeaderValue| v.to_str().ok())
+    };
     let mut common = HeaderMap::new();
     let mut put = |name: header::HeaderName, value: String| {
         if let Ok(v) = HeaderValue::from_str(&value) {

@@ -240,7 +240,10 @@ impl IntoResponse for ApiError {
             ApiError::Conflict {
                 offset: Some(o), ..
             } => {
-                headers.insert(HeaderName::from_static("upload-offset"), HeaderValue::from(*o));
+                headers.insert(
+                    HeaderName::from_static("upload-offset"),
+                    HeaderValue::from(*o),
+                );
                 headers.insert(
                     HeaderName::from_static(TUS_RESUMABLE.0),
                     HeaderValue::from_static(TUS_RESUMABLE.1),
@@ -260,7 +263,10 @@ mod tests {
     async fn problem_shape_and_headers() {
         let r = ApiError::invalid("params.knn", "must be between 3 and 1024").into_response();
         assert_eq!(r.status(), StatusCode::UNPROCESSABLE_ENTITY);
-        assert_eq!(r.headers()[header::CONTENT_TYPE], "application/problem+json");
+        assert_eq!(
+            r.headers()[header::CONTENT_TYPE],
+            "application/problem+json"
+        );
         let body = axum::body::to_bytes(r.into_body(), 1 << 16).await.unwrap();
         let v: serde_json::Value = serde_json::from_slice(&body).unwrap();
         assert_eq!(v["status"], 422);

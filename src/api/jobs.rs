@@ -196,7 +196,9 @@ pub async fn create(
     let value: Value = serde_json::from_slice(&bytes)
         .map_err(|e| ApiError::BadRequest(format!("the body is not JSON: {e}")))?;
     if !value.is_object() {
-        return Err(ApiError::BadRequest("the body must be a JSON object".into()));
+        return Err(ApiError::BadRequest(
+            "the body must be a JSON object".into(),
+        ));
     }
     let s: Submission = from_value(value, "")?;
     let (params, outliers, outlier_alpha) = params_from(

@@ -76,8 +76,8 @@ impl AppState {
     /// The embedded OpenAPI document does not parse (a build defect caught by the tests).
     pub fn new(jobs: Jobs, settings: ApiSettings) -> Result<AppState, ApiError> {
         let doc = openapi_document()?;
-        let openapi = serde_json::to_string(&doc)
-            .map_err(|e| ApiError::Internal(format!("openapi: {e}")))?;
+        let openapi =
+            serde_json::to_string(&doc).map_err(|e| ApiError::Internal(format!("openapi: {e}")))?;
         Ok(AppState {
             jobs,
             settings: Arc::new(settings),
@@ -114,7 +114,11 @@ pub fn routes() -> Vec<(&'static str, bool, MethodRouter<AppState>)> {
                 .delete(uploads::delete),
         ),
         ("/v1/jobs", true, post(jobs::create).get(jobs::list)),
-        ("/v1/jobs/{id}", true, get(jobs::status).delete(jobs::dismiss)),
+        (
+            "/v1/jobs/{id}",
+            true,
+            get(jobs::status).delete(jobs::dismiss),
+        ),
         ("/v1/jobs/{id}/result", true, get(download::result)),
         ("/v1/denoise", true, post(sync::denoise)),
     ]
@@ -244,8 +248,8 @@ pub(crate) fn now_ms() -> i64 {
 
 /// Milliseconds since the epoch as RFC 3339.
 pub(crate) fn timestamp(ms: i64) -> String {
-    let t = std::time::UNIX_EPOCH
-        + std::time::Duration::from_millis(u64::try_from(ms).unwrap_or(0));
+    let t =
+        std::time::UNIX_EPOCH + std::time::Duration::from_millis(u64::try_from(ms).unwrap_or(0));
     humantime::format_rfc3339_millis(t).to_string()
 }
 

@@ -94,7 +94,10 @@ impl Server {
     ///
     /// # Errors
     /// [`ServeError::Io`].
-    pub async fn run(self, signal: impl Future<Output = ()> + Send + 'static) -> Result<(), ServeError> {
+    pub async fn run(
+        self,
+        signal: impl Future<Output = ()> + Send + 'static,
+    ) -> Result<(), ServeError> {
         let jobs = self.state.jobs.clone();
         let app = router(self.state);
         let (tx, rx) = tokio::sync::watch::channel(false);

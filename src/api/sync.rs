@@ -23,7 +23,14 @@ use crate::io::sniff::{SNIFF_LEN, sniff};
 use crate::jobs::{SyncRequest, canonical_format};
 
 /// Parameters whose values are numbers (query strings carry text).
-const NUMERIC: [&str; 6] = ["rings", "knn", "eps", "lambda", "iterations", "outlier_alpha"];
+const NUMERIC: [&str; 6] = [
+    "rings",
+    "knn",
+    "eps",
+    "lambda",
+    "iterations",
+    "outlier_alpha",
+];
 
 /// Splits a query string into the format choices and a JSON object of denoising parameters.
 fn split_query(
@@ -40,7 +47,10 @@ fn split_query(
             match serde_json::from_str::<serde_json::Number>(&v) {
                 Ok(n) => Value::Number(n),
                 Err(_) => {
-                    return Err(ApiError::invalid(k.as_str(), format!("`{v}` is not a number")));
+                    return Err(ApiError::invalid(
+                        k.as_str(),
+                        format!("`{v}` is not a number"),
+                    ));
                 }
             }
         } else {
@@ -140,8 +150,10 @@ mod tests {
 
     #[test]
     fn query_parameters() {
-        let (f, o, m) =
-            split_query(Some("format=ply&knn=8&solve=plain&output_format=xyz&eps=0.5")).unwrap();
+        let (f, o, m) = split_query(Some(
+            "format=ply&knn=8&solve=plain&output_format=xyz&eps=0.5",
+        ))
+        .unwrap();
         assert_eq!(f.as_deref(), Some("ply"));
         assert_eq!(o.as_deref(), Some("xyz"));
         assert_eq!(m["knn"], 8);

@@ -84,8 +84,8 @@ async fn openapi_document_agrees_with_the_router() {
                 .unwrap();
             let (status, _, body) = send(&app, req).await;
             let kind = problem_type(&body);
-            let missing = status == StatusCode::METHOD_NOT_ALLOWED
-                || kind == "urn:qemd:problem:no-route";
+            let missing =
+                status == StatusCode::METHOD_NOT_ALLOWED || kind == "urn:qemd:problem:no-route";
             if !missing {
                 methods.insert(m.to_string());
             }
@@ -130,11 +130,7 @@ async fn problems_for_routes_methods_and_tokens() {
     assert_eq!(problem_type(&body), "urn:qemd:problem:no-route");
     assert!(headers.contains_key("x-request-id"));
 
-    let (status, _, body) = send(
-        &app,
-        Request::put("/v1/jobs").body(Body::empty()).unwrap(),
-    )
-    .await;
+    let (status, _, body) = send(&app, Request::put("/v1/jobs").body(Body::empty()).unwrap()).await;
     assert_eq!(status, StatusCode::METHOD_NOT_ALLOWED);
     assert_eq!(problem_type(&body), "urn:qemd:problem:method-not-allowed");
 
@@ -177,7 +173,11 @@ fn ply(n: usize) -> Vec<u8> {
     .into_bytes();
     for i in 0..n {
         let (u, v) = ((i % 40) as f32 * 0.1, (i / 40) as f32 * 0.1);
-        for c in [u, v, (u * 3.0).sin() * 0.1 + ((i * 7919) % 13) as f32 * 1e-3] {
+        for c in [
+            u,
+            v,
+            (u * 3.0).sin() * 0.1 + ((i * 7919) % 13) as f32 * 1e-3,
+        ] {
             b.extend_from_slice(&c.to_le_bytes());
         }
     }
@@ -197,7 +197,12 @@ async fn uploads_whole_and_resumable_agree() {
             .unwrap(),
     )
     .await;
-    assert_eq!(status, StatusCode::CREATED, "{}", String::from_utf8_lossy(&body));
+    assert_eq!(
+        status,
+        StatusCode::CREATED,
+        "{}",
+        String::from_utf8_lossy(&body)
+    );
     let whole: serde_json::Value = serde_json::from_slice(&body).unwrap();
     assert_eq!(whole["format"], "ply");
     assert_eq!(whole["points"], 1200);
@@ -231,11 +236,7 @@ async fn uploads_whole_and_resumable_agree() {
     let (status, headers, _) = send(&app, patch(0, data[..third].to_vec())).await;
     assert_eq!(status, StatusCode::CONFLICT);
     assert_eq!(headers["upload-offset"], third.to_string());
-    let (status, headers, _) = send(
-        &app,
-        Request::head(&loc).body(Body::empty()).unwrap(),
-    )
-    .await;
+    let (status, headers, _) = send(&app, Request::head(&loc).body(Body::empty()).unwrap()).await;
     assert_eq!(status, StatusCode::OK);
     assert_eq!(headers["upload-offset"], third.to_string());
     assert_eq!(headers["upload-length"], data.len().to_string());

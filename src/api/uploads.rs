@@ -89,7 +89,11 @@ fn metadata(headers: &HeaderMap) -> Result<FormatHint, ApiError> {
     for pair in text.split(',').map(str::trim).filter(|p| !p.is_empty()) {
         let mut it = pair.split_whitespace();
         let key = it.next().ok_or_else(bad)?;
-        let value = it.next().map(base64).unwrap_or(Some(Vec::new())).ok_or_else(bad)?;
+        let value = it
+            .next()
+            .map(base64)
+            .unwrap_or(Some(Vec::new()))
+            .ok_or_else(bad)?;
         let value = String::from_utf8(value).map_err(|_| bad())?;
         match key {
             "filename" => hint.filename = Some(value),
@@ -135,12 +139,19 @@ fn tus_headers(u: &Upload) -> Vec<(HeaderName, HeaderValue)> {
         (header::CACHE_CONTROL, HeaderValue::from_static("no-store")),
     ];
     if let Some(l) = u.length {
-        h.push((HeaderName::from_static("upload-length"), HeaderValue::from(l)));
+        h.push((
+            HeaderName::from_static("upload-length"),
+            HeaderValue::from(l),
+        ));
     }
     h
 }
 
-fn with_headers(status: StatusCode, h: Vec<(HeaderName, HeaderValue)>, body: Option<serde_json::Value>) -> Response {
+fn with_headers(
+    status: StatusCode,
+    h: Vec<(HeaderName, HeaderValue)>,
+    body: Option<serde_json::Value>,
+) -> Response {
     let mut r = match body {
         Some(b) => (status, axum::Json(b)).into_response(),
         None => status.into_response(),
@@ -232,7 +243,11 @@ pub async fn status(
     Path(id): Path<String>,
 ) -> Result<Response, ApiError> {
     let u = state.jobs.upload(&tenant, &id).await?;
-    Ok(with_headers(StatusCode::OK, tus_headers(&u), Some(view(&u))))
+    Ok(with_headers(
+        StatusCode::OK,
+        tus_headers(&u),
+        Some(view(&u)),
+    ))
 }
 
 /// `PATCH /v1/uploads/{id}`: appends a chunk.

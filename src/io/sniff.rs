@@ -31,9 +31,7 @@ pub fn sniff(head: &[u8]) -> Option<&'static str> {
     }
     if head.starts_with(b"LASF") {
         // Bit 7 (LASzip) or bit 6 (old LASzip) of the point data record format marks LAZ.
-        let compressed = head
-            .get(LAS_FORMAT_OFFSET)
-            .is_some_and(|f| f & 0xC0 != 0);
+        let compressed = head.get(LAS_FORMAT_OFFSET).is_some_and(|f| f & 0xC0 != 0);
         return Some(if compressed { "laz" } else { "las" });
     }
     // Everything else is text: judge complete lines only (the last one may be cut off).
@@ -76,17 +74,7 @@ pub fn sniff(head: &[u8]) -> Option<&'static str> {
         matches!(
             l.split_whitespace().next(),
             Some(
-                "v" | "vn"
-                    | "vt"
-                    | "vp"
-                    | "f"
-                    | "l"
-                    | "p"
-                    | "o"
-                    | "g"
-                    | "s"
-                    | "mtllib"
-                    | "usemtl"
+                "v" | "vn" | "vt" | "vp" | "f" | "l" | "p" | "o" | "g" | "s" | "mtllib" | "usemtl"
             )
         )
     };

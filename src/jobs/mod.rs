@@ -37,12 +37,12 @@ mod service;
 pub mod store;
 mod uploads;
 
-pub use uploads::{DRAIN_MAX, check_hint, discard};
 pub use service::{
     FormatHint, JobInfo, JobRequest, Jobs, ResultFile, Settings, SyncOutput, SyncRequest,
     canonical_format, output_format_for,
 };
 pub use store::{JobRow, JobSpec, Status, Upload};
+pub use uploads::{DRAIN_MAX, check_hint, discard};
 
 use thiserror::Error;
 

@@ -531,11 +531,8 @@ impl Jobs {
         }
         validate_output(req.outliers, &output)?;
         let settings = &self.inner.settings;
-        let tile_points = (!mesh
-            && upload
-                .points
-                .is_none_or(|n| n > settings.job_tile_points))
-        .then_some(settings.job_tile_points);
+        let tile_points = (!mesh && upload.points.is_none_or(|n| n > settings.job_tile_points))
+            .then_some(settings.job_tile_points);
         let row = JobRow {
             id: new_id(),
             tenant: tenant.to_string(),
@@ -670,7 +667,10 @@ impl Jobs {
                 .await
                 .is_ok();
             if !stopped {
-                warn!(job = id, "still running 1 s after cancellation; files go when it stops");
+                warn!(
+                    job = id,
+                    "still running 1 s after cancellation; files go when it stops"
+                );
             }
         }
         self.remove_job_files(id).await;
@@ -867,11 +867,9 @@ impl Jobs {
         let span = tracing::Span::current();
         let run = bridge::blocking(move || {
             span.in_scope(|| {
-                std::fs::create_dir_all(&dir).map_err(|e| {
-                    PipelineError::TempDir {
-                        path: dir.clone(),
-                        detail: e.to_string(),
-                    }
+                std::fs::create_dir_all(&dir).map_err(|e| PipelineError::TempDir {
+                    path: dir.clone(),
+                    detail: e.to_string(),
                 })?;
                 pipeline::run(&job, &opts)
             })
@@ -938,10 +936,7 @@ impl Jobs {
 
     async fn finish_failed(&self, id: &str, msg: &str) {
         let (i, m) = (id.to_string(), msg.to_string());
-        if let Err(e) = self
-            .db(move |s| s.finish_failure(&i, now_ms(), &m))
-            .await
-        {
+        if let Err(e) = self.db(move |s| s.finish_failure(&i, now_ms(), &m)).await {
             error!(error = %e, "cannot record a failed job");
         }
     }
@@ -954,7 +949,8 @@ impl Jobs {
         for r in self.lock_running().values() {
             r.cancel.store(true, Ordering::SeqCst);
         }
-        let handles = std::mem::take(&mut *self.inner.workers.lock().unwrap_or_else(|e| e.into_inner()));
+        let handles =
+            std::mem::take(&mut *self.inner.workers.lock().unwrap_or_else(|e| e.into_inner()));
         let all = futures_util::future::join_all(handles);
         if tokio::time::timeout(grace, all).await.is_err() {
             warn!("jobs still running after the shutdown grace period");
@@ -996,8 +992,9 @@ impl Jobs {
             .outlier_alpha
             .unwrap_or(self.inner.settings.outlier_alpha);
         validate_params(&req.params, alpha)?;
-        let input_format = canonical_format(&req.format)
-            .ok_or_else(|| JobsError::UnsupportedFormat(format!("unknown format `{}`", req.format)))?;
+        let input_format = canonical_format(&req.format).ok_or_else(|| {
+            JobsError::UnsupportedFormat(format!("unknown format `{}`", req.format))
+        })?;
         let output_format = output_format_for(req.output_format.as_deref(), &input_format)?;
         validate_output(req.outliers, &output_format)?;
         let cancel = Arc::new(AtomicBool::new(false));
@@ -1040,8 +1037,8 @@ impl Jobs {
             };
             match pipeline::run(&job, &opts) {
                 Ok(mut report) => {
-                    let bytes = std::fs::read(&output)
-                        .map_err(|e| JobsError::io("read the result", e))?;
+                    let bytes =
+                        std::fs::read(&output).map_err(|e| JobsError::io("read the result", e))?;
                     report.input = PathBuf::from("input");
                     report.output = PathBuf::from(format!("result.{output_format}"));
                     Ok(SyncOutput {

@@ -419,7 +419,14 @@ impl Store {
         self.conn().execute(
             "INSERT INTO jobs (id, tenant, upload, status, spec, created_ms) \
              VALUES (?1, ?2, ?3, ?4, ?5, ?6)",
-            params![j.id, j.tenant, j.upload, j.status.as_str(), spec, j.created_ms],
+            params![
+                j.id,
+                j.tenant,
+                j.upload,
+                j.status.as_str(),
+                spec,
+                j.created_ms
+            ],
         )?;
         Ok(())
     }
@@ -661,14 +668,29 @@ mod tests {
         assert_eq!(page[0].id, "j2");
         assert_eq!(s.active_jobs_of_upload("u1").unwrap(), 3);
 
-        assert!(s.transition("j1", Status::Accepted, Status::Running, Some(2), None).unwrap());
-        assert!(!s.transition("j1", Status::Accepted, Status::Running, Some(2), None).unwrap());
+        assert!(
+            s.transition("j1", Status::Accepted, Status::Running, Some(2), None)
+                .unwrap()
+        );
+        assert!(
+            !s.transition("j1", Status::Accepted, Status::Running, Some(2), None)
+                .unwrap()
+        );
         assert!(s.dismiss("j1", 3).unwrap());
         assert!(!s.finish_failure("j1", 4, "x").unwrap());
-        assert_eq!(s.job(None, "j1").unwrap().unwrap().status, Status::Dismissed);
-        assert!(s.transition("j2", Status::Accepted, Status::Running, Some(2), None).unwrap());
+        assert_eq!(
+            s.job(None, "j1").unwrap().unwrap().status,
+            Status::Dismissed
+        );
+        assert!(
+            s.transition("j2", Status::Accepted, Status::Running, Some(2), None)
+                .unwrap()
+        );
         assert_eq!(s.requeue_running().unwrap(), 1);
-        assert_eq!(s.ids_with_status(Status::Accepted).unwrap(), vec!["j2", "j3"]);
+        assert_eq!(
+            s.ids_with_status(Status::Accepted).unwrap(),
+            vec!["j2", "j3"]
+        );
         let counts = s.count_by_status().unwrap();
         assert!(counts.contains(&(Status::Accepted, 2)));
         assert!(counts.contains(&(Status::Dismissed, 1)));

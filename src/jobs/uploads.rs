@@ -191,7 +191,8 @@ impl Jobs {
         let mut hasher = Sha256::new();
         let mut size = 0u64;
         while let Some(chunk) = body.next().await {
-            let chunk = chunk.map_err(|e| JobsError::BadRequest(format!("reading the body: {e}")))?;
+            let chunk =
+                chunk.map_err(|e| JobsError::BadRequest(format!("reading the body: {e}")))?;
             let bytes = chunk.as_ref();
             size += bytes.len() as u64;
             if let Err(e) = self.check_size(size) {
@@ -214,10 +215,9 @@ impl Jobs {
         let sha = hex(&hasher.finalize());
         let me = self.clone();
         let uid = id.clone();
-        let (inspected, path) = bridge::blocking(move || {
-            inspect(&part, |ext| me.upload_path(&uid, ext), declared)
-        })
-        .await??;
+        let (inspected, path) =
+            bridge::blocking(move || inspect(&part, |ext| me.upload_path(&uid, ext), declared))
+                .await??;
         guard.0 = Some(path);
         let upload = Upload {
             id,
@@ -340,7 +340,11 @@ impl Jobs {
         let length = upload.length.unwrap_or(0);
         // One PATCH per upload at a time: a second one would interleave bytes.
         let _lock = {
-            let mut p = self.inner.patching.lock().unwrap_or_else(|e| e.into_inner());
+            let mut p = self
+                .inner
+                .patching
+                .lock()
+                .unwrap_or_else(|e| e.into_inner());
             if !p.insert(id.to_string()) {
                 return Err(JobsError::Conflict {
                     detail: format!("another PATCH of upload {id} is in progress"),
