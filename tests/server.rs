@@ -1119,3 +1119,50 @@ fn operations_endpoints_and_graceful_shutdown() {
     assert!(status.success(), "{status:?}\n{}", s.log());
     assert!(s.log().contains("stopped"));
 }
+
+#[test]
+fn sigterm_puts_a_running_job_back_in_the_queue() {
+    let d = tempfile::tempdir().unwrap();
+    let config = "job_tile_points = 1000\n";
+    let mut s = Server::start(d.path(), config, &[]);
+    let c = client();
+    let path = d.path().join("in.ply");
+    write_cloud(&path, if cfg!(debug_assertions) { 20_000 } else { 60_000 }, 33);
+    let up = upload(&c, &s, "", std::fs::read(&path).unwrap());
+    let (status, _, v) = post_job(&c, &s, &json!({"input": up["id"], "params": {"knn": 10}}));
+    assert_eq!(status, StatusCode::CREATED);
+    let id = v["id"].as_str().unwrap().to_string();
+    let work = s.data.join("jobs").join(&id).join("work");
+    let start = Instant::now();
+    while !std::fs::read_dir(&work).is_ok_and(|mut it| {
+        it.any(|e| e.is_ok_and(|e| e.file_name().to_string_lossy().ends_with(".res")))
+    }) {
+        assert!(start.elapsed() < Duration::from_secs(300), "no checkpoint");
+        std::thread::sleep(Duration::from_millis(1));
+    }
+    let pid = s.child.id().to_string();
+    assert!(Command::new("kill").args(["-TERM", &pid]).status().unwrap().success());
+    let start = Instant::now();
+    let exit = loop {
+        if let Some(st) = s.child.try_wait().unwrap() {
+            break st;
+        }
+        assert!(start.elapsed() < Duration::from_secs(15), "no exit after SIGTERM");
+        std::thread::sleep(Duration::from_millis(10));
+    };
+    assert!(exit.success(), "{exit:?}\n{}", s.log());
+    let log = s.log();
+    s.kill();
+    assert!(
+        log.contains("resumes at the next start") || log.contains("successful"),
+        "{log}"
+    );
+    let s = Server::start(d.path(), config, &[]);
+    let done = wait(&c, &s, &id);
+    assert_eq!(done["status"], "successful", "{done}");
+    if log.contains("resumes at the next start") {
+        assert!(done["report"]["tiles_resumed"].as_u64().unwrap() >= 1, "{done}");
+    }
+    let want = cli(&path, &d.path().join("cli.ply"), &["--knn", "10"]);
+    assert!(download(&c, &s, &id) == want);
+}
