@@ -1127,7 +1127,15 @@ fn sigterm_puts_a_running_job_back_in_the_queue() {
     let mut s = Server::start(d.path(), config, &[]);
     let c = client();
     let path = d.path().join("in.ply");
-    write_cloud(&path, if cfg!(debug_assertions) { 20_000 } else { 60_000 }, 33);
+    write_cloud(
+        &path,
+        if cfg!(debug_assertions) {
+            20_000
+        } else {
+            60_000
+        },
+        33,
+    );
     let up = upload(&c, &s, "", std::fs::read(&path).unwrap());
     let (status, _, v) = post_job(&c, &s, &json!({"input": up["id"], "params": {"knn": 10}}));
     assert_eq!(status, StatusCode::CREATED);
@@ -1141,13 +1149,22 @@ fn sigterm_puts_a_running_job_back_in_the_queue() {
         std::thread::sleep(Duration::from_millis(1));
     }
     let pid = s.child.id().to_string();
-    assert!(Command::new("kill").args(["-TERM", &pid]).status().unwrap().success());
+    assert!(
+        Command::new("kill")
+            .args(["-TERM", &pid])
+            .status()
+            .unwrap()
+            .success()
+    );
     let start = Instant::now();
     let exit = loop {
         if let Some(st) = s.child.try_wait().unwrap() {
             break st;
         }
-        assert!(start.elapsed() < Duration::from_secs(15), "no exit after SIGTERM");
+        assert!(
+            start.elapsed() < Duration::from_secs(15),
+            "no exit after SIGTERM"
+        );
         std::thread::sleep(Duration::from_millis(10));
     };
     assert!(exit.success(), "{exit:?}\n{}", s.log());
@@ -1161,7 +1178,10 @@ fn sigterm_puts_a_running_job_back_in_the_queue() {
     let done = wait(&c, &s, &id);
     assert_eq!(done["status"], "successful", "{done}");
     if log.contains("resumes at the next start") {
-        assert!(done["report"]["tiles_resumed"].as_u64().unwrap() >= 1, "{done}");
+        assert!(
+            done["report"]["tiles_resumed"].as_u64().unwrap() >= 1,
+            "{done}"
+        );
     }
     let want = cli(&path, &d.path().join("cli.ply"), &["--knn", "10"]);
     assert!(download(&c, &s, &id) == want);

@@ -32,10 +32,11 @@ const NUMERIC: [&str; 6] = [
     "outlier_alpha",
 ];
 
+/// A query string split: input format, output format, denoising parameters (JSON object).
+type Split = (Option<String>, Option<String>, Map<String, Value>);
+
 /// Splits a query string into the format choices and a JSON object of denoising parameters.
-fn split_query(
-    query: Option<&str>,
-) -> Result<(Option<String>, Option<String>, Map<String, Value>), ApiError> {
+fn split_query(query: Option<&str>) -> Result<Split, ApiError> {
     let pairs: Vec<(String, String)> = match query {
         None => Vec::new(),
         Some(q) => serde_urlencoded::from_str(q)
