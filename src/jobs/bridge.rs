@@ -8,10 +8,31 @@
 //!
 //! Neither ever runs work on a tokio worker thread, and a panic in the closure becomes an error
 //! instead of taking the process down (rayon's default would abort).
+//!
+//! Jobs run on their own rayon pool whose threads call [`lower_priority`] (nice
+//! [`JOB_NICE`] on Linux): background work yields the cores to synchronous requests, which are
+//! latency-bound, instead of sharing them evenly.
 
 use std::panic::{AssertUnwindSafe, catch_unwind};
 
 use super::JobsError;
+
+/// Nice value of the job pool's threads: the scheduler gives a nice-0 thread about ten times the
+/// CPU share of a nice-10 one.
+pub const JOB_NICE: i32 = 10;
+
+/// Lowers the calling thread's scheduling priority to [`JOB_NICE`] (Linux; elsewhere, and when
+/// the process already runs lower, nothing changes). Threads it spawns inherit it.
+pub fn lower_priority() {
+    #[cfg(target_os = "linux")]
+    {
+        let tid = rustix::thread::gettid();
+        let lower = rustix::process::getpriority_process(Some(tid)).is_ok_and(|p| p < JOB_NICE);
+        if lower {
+            let _ = rustix::process::setpriority_process(Some(tid), JOB_NICE);
+        }
+    }
+}
 
 /// Runs `f` on `pool` and waits for it without blocking the runtime.
 ///
@@ -65,5 +86,20 @@ mod tests {
         assert_eq!(cpu(&pool, || 1).await.unwrap(), 1);
         assert_eq!(blocking(|| "x").await.unwrap(), "x");
         assert!(blocking(|| -> u8 { panic!("boom") }).await.is_err());
+    }
+
+    #[cfg(target_os = "linux")]
+    #[test]
+    fn job_threads_run_at_a_lower_priority() {
+        let nice = std::thread::spawn(|| {
+            lower_priority();
+            rustix::process::getpriority_process(Some(rustix::thread::gettid())).unwrap()
+        })
+        .join()
+        .unwrap();
+        assert!(nice >= JOB_NICE);
+        // Only that thread: this one keeps its priority.
+        let mine = rustix::process::getpriority_process(Some(rustix::thread::gettid())).unwrap();
+        assert!(mine < JOB_NICE || mine == nice);
     }
 }

@@ -316,8 +316,10 @@ pub(super) struct Inner {
     shutdown: watch::Sender<bool>,
     workers: Mutex<Vec<tokio::task::JoinHandle<()>>>,
     /// The synchronous path's own rayon pool, so that robot requests do not queue behind the
-    /// tiles of long jobs (which use the global pool).
+    /// tiles of long jobs.
     sync_pool: rayon::ThreadPool,
+    /// The jobs' rayon pool, at a lower priority (see [`bridge::lower_priority`]).
+    job_pool: rayon::ThreadPool,
     sync_slots: tokio::sync::Semaphore,
 }
 
@@ -367,6 +369,12 @@ impl Jobs {
             .thread_name(|i| format!("qemd-sync-{i}"))
             .build()
             .map_err(|e| JobsError::Internal(format!("cannot start the sync pool: {e}")))?;
+        let job_pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .thread_name(|i| format!("qemd-job-{i}"))
+            .start_handler(|_| bridge::lower_priority())
+            .build()
+            .map_err(|e| JobsError::Internal(format!("cannot start the job pool: {e}")))?;
         let (shutdown, _) = watch::channel(false);
         let jobs = Jobs {
             inner: Arc::new(Inner {
@@ -384,6 +392,7 @@ impl Jobs {
                 shutdown,
                 workers: Mutex::new(Vec::new()),
                 sync_pool,
+                job_pool,
             }),
         };
         jobs.update_gauges();
@@ -865,13 +874,18 @@ impl Jobs {
         let dir = dir.to_path_buf();
         info!(input = %input.1, output = %spec.output_format, tile_points = ?spec.tile_points, "started");
         let span = tracing::Span::current();
+        let inner = self.inner.clone();
+        // The driver waits on a blocking thread; the run itself (its I/O and its kernels) happens
+        // on the job pool's lower-priority threads.
         let run = bridge::blocking(move || {
-            span.in_scope(|| {
-                std::fs::create_dir_all(&dir).map_err(|e| PipelineError::TempDir {
-                    path: dir.clone(),
-                    detail: e.to_string(),
-                })?;
-                pipeline::run(&job, &opts)
+            inner.job_pool.install(|| {
+                span.in_scope(|| {
+                    std::fs::create_dir_all(&dir).map_err(|e| PipelineError::TempDir {
+                        path: dir.clone(),
+                        detail: e.to_string(),
+                    })?;
+                    pipeline::run(&job, &opts)
+                })
             })
         })
         .await;
