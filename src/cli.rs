@@ -36,6 +36,22 @@ pub enum Command {
     Render(RenderArgs),
     /// Generate a noisy scan, denoise it, print the metrics and write files and renderings.
     Demo(DemoArgs),
+    /// Run the HTTP job service (uploads, asynchronous jobs, synchronous denoise).
+    Serve(ServeArgs),
+}
+
+/// Flags of `qemd serve`; everything else comes from the configuration.
+#[derive(Debug, Args)]
+pub struct ServeArgs {
+    /// Configuration file (overrides config/default.toml; QEMD_* variables override it).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Address to listen on, host:port (overrides `listen`; port 0 picks a free one).
+    #[arg(long)]
+    pub listen: Option<String>,
+    /// Data directory (overrides `data_dir`).
+    #[arg(long)]
+    pub data_dir: Option<PathBuf>,
 }
 
 /// Solver choice on the command line.

@@ -13,7 +13,22 @@ use thiserror::Error;
 pub const DEFAULTS: &str = include_str!("../config/default.toml");
 
 /// Every key the configuration knows (also the `QEMD_*` variables read).
-pub const KEYS: &[&str] = &["memory_budget", "temp_dir", "outlier_alpha"];
+pub const KEYS: &[&str] = &[
+    "memory_budget",
+    "temp_dir",
+    "outlier_alpha",
+    "listen",
+    "data_dir",
+    "auth_tokens",
+    "max_upload_size",
+    "max_sync_size",
+    "job_concurrency",
+    "queue_capacity",
+    "job_tile_points",
+    "sync_concurrency",
+    "log_format",
+    "log_level",
+];
 
 /// Errors of configuration loading.
 #[derive(Debug, Error)]
@@ -37,6 +52,38 @@ pub struct Config {
     pub temp_dir: PathBuf,
     /// Outlier threshold in standard deviations.
     pub outlier_alpha: f64,
+    /// `serve`: address to listen on (`host:port`).
+    pub listen: String,
+    /// `serve`: job database, uploads, results and checkpoints.
+    pub data_dir: PathBuf,
+    /// `serve`: comma-separated `token:tenant` pairs; empty for no authentication.
+    pub auth_tokens: String,
+    /// `serve`: largest upload.
+    pub max_upload_size: ByteSize,
+    /// `serve`: largest synchronous request body.
+    pub max_sync_size: ByteSize,
+    /// `serve`: jobs running at the same time.
+    pub job_concurrency: usize,
+    /// `serve`: accepted jobs waiting for a slot.
+    pub queue_capacity: usize,
+    /// `serve`: point clouds larger than this run tiled with tiles of about this many points.
+    pub job_tile_points: u64,
+    /// `serve`: synchronous requests running at the same time.
+    pub sync_concurrency: usize,
+    /// `serve`: log line format.
+    pub log_format: LogFormat,
+    /// `serve`: log filter (tracing `EnvFilter` syntax).
+    pub log_level: String,
+}
+
+/// How `qemd serve` writes its log lines.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum LogFormat {
+    /// Human-readable lines.
+    Text,
+    /// One JSON object per line.
+    Json,
 }
 
 impl Config {
@@ -62,7 +109,72 @@ impl Config {
                 c.outlier_alpha
             )));
         }
+        c.validate_service()?;
         Ok(c)
+    }
+
+    /// Checks the keys of `qemd serve` (ranges, token syntax).
+    ///
+    /// # Errors
+    /// [`ConfigError::Invalid`] naming the key.
+    pub fn validate_service(&self) -> Result<(), ConfigError> {
+        let bad = |key: &str, detail: &str| Err(ConfigError::Invalid(format!("{key} {detail}")));
+        if self.listen.trim().is_empty() || !self.listen.contains(':') {
+            return bad("listen", "must be host:port");
+        }
+        if self.data_dir.as_os_str().is_empty() {
+            return bad("data_dir", "must not be empty");
+        }
+        if !(1..=256).contains(&self.job_concurrency) {
+            return bad("job_concurrency", "must be between 1 and 256");
+        }
+        if !(1..=1_000_000).contains(&self.queue_capacity) {
+            return bad("queue_capacity", "must be between 1 and 1000000");
+        }
+        if !(1..=4096).contains(&self.sync_concurrency) {
+            return bad("sync_concurrency", "must be between 1 and 4096");
+        }
+        if self.job_tile_points < 1000 {
+            return bad("job_tile_points", "must be at least 1000");
+        }
+        if self.max_upload_size.as_u64() == 0 || self.max_sync_size.as_u64() == 0 {
+            return bad("max_upload_size and max_sync_size", "must be positive");
+        }
+        self.tokens()?;
+        Ok(())
+    }
+
+    /// The bearer tokens and their tenants from `auth_tokens` (empty: no authentication).
+    ///
+    /// # Errors
+    /// An entry that is not `token:tenant`, a tenant with characters other than letters, digits,
+    /// `-` and `_`, or a token given twice.
+    pub fn tokens(&self) -> Result<Vec<(String, String)>, ConfigError> {
+        let mut out: Vec<(String, String)> = Vec::new();
+        for entry in self.auth_tokens.split(',').map(str::trim) {
+            if entry.is_empty() {
+                continue;
+            }
+            let bad = |d: &str| ConfigError::Invalid(format!("auth_tokens: {d}"));
+            let (token, tenant) = entry
+                .rsplit_once(':')
+                .ok_or_else(|| bad("each entry must be token:tenant"))?;
+            let (token, tenant) = (token.trim(), tenant.trim());
+            if token.len() < 8 || token.chars().any(|c| c.is_whitespace() || c.is_control()) {
+                return Err(bad(
+                    "a token must have at least 8 characters and no white space",
+                ));
+            }
+            let ok = |c: char| c.is_ascii_alphanumeric() || c == '-' || c == '_';
+            if tenant.is_empty() || tenant.len() > 64 || !tenant.chars().all(ok) {
+                return Err(bad("a tenant must be 1 to 64 letters, digits, '-' or '_'"));
+            }
+            if out.iter().any(|(t, _)| t == token) {
+                return Err(bad("a token is given twice"));
+            }
+            out.push((token.to_string(), tenant.to_string()));
+        }
+        Ok(out)
     }
 
     /// The spill directory, `None` for the system default.
@@ -95,5 +207,41 @@ mod tests {
             Config::load(Some(&dir.path().join("none.toml"))),
             Err(ConfigError::Missing(_))
         ));
+    }
+
+    #[test]
+    fn service_keys_and_tokens() {
+        let c = Config::load(None).unwrap();
+        assert_eq!(c.listen, "127.0.0.1:8080");
+        assert_eq!(c.log_format, LogFormat::Text);
+        assert!(c.tokens().unwrap().is_empty());
+        let dir = tempfile::tempdir().unwrap();
+        let f = dir.path().join("c.toml");
+        std::fs::write(
+            &f,
+            "auth_tokens = \"secret-aaa:alice, secret-bbb:bob\"\nlog_format = \"json\"\n",
+        )
+        .unwrap();
+        let c = Config::load(Some(&f)).unwrap();
+        assert_eq!(
+            c.tokens().unwrap(),
+            vec![
+                ("secret-aaa".to_string(), "alice".to_string()),
+                ("secret-bbb".to_string(), "bob".to_string())
+            ]
+        );
+        assert_eq!(c.log_format, LogFormat::Json);
+        for bad in [
+            "auth_tokens = \"nocolon\"",
+            "auth_tokens = \"short:a\"",
+            "auth_tokens = \"secret-aaa:a b\"",
+            "auth_tokens = \"secret-aaa:a,secret-aaa:b\"",
+            "job_concurrency = 0",
+            "log_format = \"xml\"",
+            "listen = \"8080\"",
+        ] {
+            std::fs::write(&f, bad).unwrap();
+            assert!(Config::load(Some(&f)).is_err(), "{bad}");
+        }
     }
 }

@@ -12,18 +12,24 @@
 //! * [`denoise`]: the QEM operator (meshes and point clouds), the bilateral baseline, parameters
 //!   and statistics.
 //! * [`eval`]: synthetic shapes, noise, the quality metrics, Table I, rendering.
-//! * [`pipeline`]: source → denoise → sink with timing and a report.
-//! * [`cli`]: the `qemd` command line.
+//! * [`tiling`]: the out-of-core path (plan, partition, tiles with halos, stitch).
+//! * [`pipeline`]: source → denoise → sink with progress, cancellation, checkpoints and a report.
+//! * [`jobs`]: the service's job store (SQLite), uploads, scheduler and the one bridge from the
+//!   async runtime to rayon; nothing before it knows about tokio.
+//! * [`api`]: the HTTP API (axum): routes, uploads, downloads, errors, OpenAPI, server.
+//! * [`config`], [`cli`]: configuration (figment) and the `qemd` command line.
 
 #![warn(missing_docs)]
 #![forbid(unsafe_code)]
 
+pub mod api;
 pub mod cli;
 pub mod config;
 pub mod denoise;
 pub mod eval;
 pub mod geometry;
 pub mod io;
+pub mod jobs;
 pub mod neighbours;
 pub mod pipeline;
 pub mod points;

@@ -10,11 +10,13 @@ use std::time::Duration;
 use anyhow::{Context, Result};
 use clap::Parser;
 
+use qem_denoise::api::ApiSettings;
+use qem_denoise::api::server::{ServeOptions, Server, shutdown_signal};
 use qem_denoise::cli::{
-    Cli, Command, DemoArgs, DenoiseArgs, EvalArgs, NoiseArgs, OutliersArg, RenderArgs, SynthArgs,
-    TableArgs,
+    Cli, Command, DemoArgs, DenoiseArgs, EvalArgs, NoiseArgs, OutliersArg, RenderArgs, ServeArgs,
+    SynthArgs, TableArgs,
 };
-use qem_denoise::config::Config;
+use qem_denoise::config::{Config, LogFormat};
 use qem_denoise::denoise::{self, Params};
 use qem_denoise::eval::metrics::{Metrics, Reference};
 use qem_denoise::eval::noise::{NoiseModel, NoiseSpec, add_noise};
@@ -47,7 +49,69 @@ fn run(cli: Cli) -> Result<()> {
         Command::Table(a) => table(a),
         Command::Render(a) => render_cmd(a),
         Command::Demo(a) => demo(a),
+        Command::Serve(a) => serve(a),
     }
+}
+
+fn init_logging(config: &Config) -> Result<()> {
+    let filter = tracing_subscriber::EnvFilter::try_new(&config.log_level)
+        .with_context(|| format!("log_level `{}` is not a valid filter", config.log_level))?;
+    let builder = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr)
+        .with_ansi(std::io::stderr().is_terminal());
+    let installed = match config.log_format {
+        LogFormat::Text => builder.try_init(),
+        LogFormat::Json => builder.json().try_init(),
+    };
+    installed.map_err(|e| anyhow::anyhow!("cannot install the logger: {e}"))
+}
+
+fn serve(a: ServeArgs) -> Result<()> {
+    use std::io::Write;
+    let mut config = Config::load(a.config.as_deref())?;
+    if let Some(l) = a.listen {
+        config.listen = l;
+    }
+    if let Some(d) = a.data_dir {
+        config.data_dir = d;
+    }
+    config.validate_service()?;
+    init_logging(&config)?;
+    let opts = ServeOptions {
+        listen: config.listen.clone(),
+        jobs: qem_denoise::jobs::Settings {
+            data_dir: config.data_dir.clone(),
+            job_concurrency: config.job_concurrency,
+            queue_capacity: config.queue_capacity,
+            memory_budget: config.memory_budget.as_u64(),
+            job_tile_points: config.job_tile_points,
+            outlier_alpha: config.outlier_alpha,
+            max_upload_size: config.max_upload_size.as_u64(),
+            sync_concurrency: config.sync_concurrency,
+        },
+        api: ApiSettings {
+            tokens: config.tokens()?,
+            max_sync_size: config.max_sync_size.as_u64(),
+        },
+        grace: Duration::from_secs(10),
+    };
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .thread_name("qemd-io")
+        .build()
+        .context("cannot start the async runtime")?;
+    let result = runtime.block_on(async move {
+        let server = Server::bind(opts).await?;
+        let addr = server.local_addr()?;
+        // The one line a supervisor (or a test) reads to learn the bound address.
+        println!("qemd: listening on http://{addr}");
+        std::io::stdout().flush()?;
+        server.run(shutdown_signal()).await?;
+        anyhow::Ok(())
+    });
+    runtime.shutdown_timeout(Duration::from_secs(2));
+    result
 }
 
 fn init_threads(threads: Option<usize>) -> Result<()> {

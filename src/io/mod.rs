@@ -57,6 +57,7 @@ pub mod obj;
 pub mod off;
 pub mod pcd;
 pub mod ply;
+pub mod sniff;
 pub mod text;
 
 use std::fs::File;

@@ -1,0 +1,145 @@
+//! Format detection from a file's first bytes, for data that arrives without a file name (service
+//! uploads, request bodies).
+//!
+//! [`sniff`] looks at a prefix of the content ([`SNIFF_LEN`] bytes are plenty) and names the
+//! format by its canonical extension, or `None` when nothing matches:
+//!
+//! | content | answer |
+//! |---|---|
+//! | `ply` line | `ply` |
+//! | `LASF` signature, compression bits of the point format clear / set | `las` / `laz` |
+//! | first keyword line of a PCD header (`VERSION`, `FIELDS`, …), or `# .PCD` | `pcd` |
+//! | first token `OFF`, `COFF`, `NOFF`, `CNOFF`, `STOFF` … | `off` |
+//! | lines starting `v `, `f `, `vn `, `o `, `g `… (with at least one `v`) | `obj` |
+//! | a lone count line, then lines of ≥ 3 numbers | `pts` |
+//! | lines of ≥ 3 numbers (space, tab, comma or semicolon separated) | `xyz` |
+//!
+//! KITTI `.bin` scans are raw `f32` records with no signature: they are never sniffed and must be
+//! named explicitly. Sniffing only picks a reader; the reader itself then validates the file.
+
+/// How many leading bytes [`sniff`] needs at most.
+pub const SNIFF_LEN: usize = 4096;
+
+/// Byte offset of the point data record format in a LAS public header.
+const LAS_FORMAT_OFFSET: usize = 104;
+
+/// Names the format of content starting with `head` by its canonical extension (`ply`, `las`,
+/// `laz`, `pcd`, `off`, `obj`, `pts`, `xyz`), or `None`.
+pub fn sniff(head: &[u8]) -> Option<&'static str> {
+    if head.starts_with(b"ply\n") || head.starts_with(b"ply\r\n") {
+        return Some("ply");
+    }
+    if head.starts_with(b"LASF") {
+        // Bit 7 (LASzip) or bit 6 (old LASzip) of the point data record format marks LAZ.
+        let compressed = head.get(LAS_FORMAT_OFFSET).is_some_and(|f| f & 0xC0 != 0);
+        return Some(if compressed { "laz" } else { "las" });
+    }
+    // Everything else is text: judge complete lines only (the last one may be cut off).
+    let text = match head.iter().rposition(|&b| b == b'\n') {
+        Some(end) if head.len() == SNIFF_LEN => &head[..end],
+        _ => head,
+    };
+    let text = std::str::from_utf8(text).ok()?;
+    let mut lines = text
+        .lines()
+        .map(str::trim)
+        .filter(|l| !l.is_empty())
+        .peekable();
+    let first = *lines.peek()?;
+    if first.starts_with("# .PCD") {
+        return Some("pcd");
+    }
+    let keyword = first.split_whitespace().next()?.to_ascii_uppercase();
+    const PCD: [&str; 9] = [
+        "VERSION", "FIELDS", "COLUMNS", "SIZE", "TYPE", "COUNT", "WIDTH", "HEIGHT", "POINTS",
+    ];
+    if PCD.contains(&keyword.as_str()) {
+        return Some("pcd");
+    }
+    if keyword.ends_with("OFF")
+        && keyword
+            .trim_end_matches("OFF")
+            .chars()
+            .all(|c| matches!(c, 'C' | 'N' | 'S' | 'T'))
+    {
+        return Some("off");
+    }
+    // Drop comment lines (`#`, `//`) for the remaining text formats.
+    let content: Vec<&str> = lines
+        .filter(|l| !l.starts_with('#') && !l.starts_with("//"))
+        .take(16)
+        .collect();
+    let first = *content.first()?;
+    let obj_keyword = |l: &str| {
+        matches!(
+            l.split_whitespace().next(),
+            Some(
+                "v" | "vn" | "vt" | "vp" | "f" | "l" | "p" | "o" | "g" | "s" | "mtllib" | "usemtl"
+            )
+        )
+    };
+    if content.iter().all(|l| obj_keyword(l))
+        && content
+            .iter()
+            .any(|l| l.split_whitespace().next() == Some("v"))
+    {
+        return Some("obj");
+    }
+    let numbers = |l: &str| -> Option<usize> {
+        let fields: Vec<&str> = l
+            .split(|c: char| c.is_whitespace() || c == ',' || c == ';')
+            .filter(|t| !t.is_empty())
+            .collect();
+        fields
+            .iter()
+            .all(|t| t.parse::<f64>().is_ok())
+            .then_some(fields.len())
+    };
+    let rest_are_points = |from: usize| {
+        let rest = &content[from..];
+        !rest.is_empty() && rest.iter().all(|l| numbers(l).is_some_and(|n| n >= 3))
+    };
+    if first.parse::<u64>().is_ok() && rest_are_points(1) {
+        return Some("pts");
+    }
+    if rest_are_points(0) {
+        return Some("xyz");
+    }
+    None
+}
+
+#[cfg(test)]
+mod tests {
+    use super::sniff;
+
+    #[test]
+    fn formats_by_content() {
+        assert_eq!(sniff(b"ply\nformat ascii 1.0\n"), Some("ply"));
+        let mut las = b"LASF".to_vec();
+        las.resize(227, 0);
+        assert_eq!(sniff(&las), Some("las"));
+        las[104] = 0x80 | 3;
+        assert_eq!(sniff(&las), Some("laz"));
+        assert_eq!(sniff(b"# .PCD v0.7\nVERSION 0.7\n"), Some("pcd"));
+        assert_eq!(sniff(b"VERSION 0.7\nFIELDS x y z\n"), Some("pcd"));
+        assert_eq!(sniff(b"OFF\n3 1 0\n0 0 0\n"), Some("off"));
+        assert_eq!(sniff(b"COFF 8 6 12\n"), Some("off"));
+        assert_eq!(
+            sniff(b"# made by hand\nv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n"),
+            Some("obj")
+        );
+        assert_eq!(sniff(b"3\n0 0 0 5\n1 0 0 5\n0 1 0 5\n"), Some("pts"));
+        assert_eq!(sniff(b"//X Y Z\n0,0,0\n1,0,0\n0,1,0.5\n"), Some("xyz"));
+        assert_eq!(sniff(b"0 0 0\n1 0 0\n0 1 0\n"), Some("xyz"));
+    }
+
+    #[test]
+    fn unknown_content() {
+        assert_eq!(sniff(b""), None);
+        assert_eq!(sniff(b"hello world\n"), None);
+        assert_eq!(sniff(&[0u8, 159, 146, 150, 1, 2, 3]), None);
+        assert_eq!(sniff(b"{\"json\": true}"), None);
+        assert_eq!(sniff(b"1 2\n3 4\n"), None);
+        assert_eq!(sniff(b"LAS"), None);
+    }
+}

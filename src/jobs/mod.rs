@@ -1,0 +1,121 @@
+//! Jobs: the service's state and work, below the HTTP layer.
+//!
+//! # Brief overview
+//!
+//! * [`Jobs`] is the cheap, clonable handle the API holds: uploads (streamed to disk, hashed,
+//!   sniffed and validated), job submission into a bounded queue, a fixed number of workers, job
+//!   status and progress, cancellation, results, and the synchronous denoise path.
+//! * [`store::Store`] keeps uploads and jobs in SQLite; files live under the data directory:
+//!
+//!   ```text
+//!    data_dir/qemd.sqlite            uploads and jobs (WAL)
+//!    data_dir/uploads/<id>.part      an upload still receiving bytes
+//!    data_dir/uploads/<id>.<ext>     a complete upload (ext = its format: ply, laz, …)
+//!    data_dir/jobs/<id>/work/        the pipeline's work_dir: plan, spill, tile checkpoints
+//!    data_dir/jobs/<id>/result.<ext> the result
+//!    data_dir/tmp/                   synchronous requests in flight (emptied at start)
+//!   ```
+//!
+//! * [`bridge`] is the only place where async code hands work to other threads: rayon for the
+//!   synchronous path, the blocking pool for SQLite, hashing and job drivers. Nothing below this
+//!   module knows about tokio.
+//! * A job's run is [`crate::pipeline::run`] with `work_dir` = its directory: tile results are
+//!   checkpoints, so a job whose server died (even by SIGKILL) is re-queued at start-up and
+//!   resumes with only its unfinished tiles, writing the same bytes. Point clouds larger than
+//!   [`Settings::job_tile_points`] always run tiled, which bounds how long a cancellation takes
+//!   (the pipeline checks its cancel flag between batches and tiles).
+//! * [`metrics::Metrics`] holds the Prometheus metrics; [`progress::ProgressView`] what a running
+//!   job reports.
+//!
+//! Ids are random UUIDs (v4), and every lookup is scoped to a tenant: another tenant's upload or
+//! job is indistinguishable from one that does not exist.
+
+pub mod bridge;
+pub mod metrics;
+pub mod progress;
+mod service;
+pub mod store;
+mod uploads;
+
+pub use service::{
+    FormatHint, JobInfo, JobRequest, Jobs, ResultFile, Settings, SyncOutput, SyncRequest,
+    canonical_format, output_format_for,
+};
+pub use store::{JobRow, JobSpec, Status, Upload};
+pub use uploads::{DRAIN_MAX, check_hint, discard};
+
+use thiserror::Error;
+
+/// Errors of the job service; the API maps each to an HTTP status.
+#[derive(Debug, Error)]
+#[non_exhaustive]
+pub enum JobsError {
+    /// The database failed.
+    #[error("database: {0}")]
+    Db(#[from] rusqlite::Error),
+    /// A file operation failed.
+    #[error("{what}: {source}")]
+    Io {
+        /// What was being done.
+        what: String,
+        /// The OS error.
+        #[source]
+        source: std::io::Error,
+    },
+    /// No such upload or job (for this tenant).
+    #[error("no such {0}")]
+    NotFound(&'static str),
+    /// A request field is invalid.
+    #[error("{field}: {detail}")]
+    Invalid {
+        /// The field, as the request spells it (`params.knn`, `output_format`, …).
+        field: String,
+        /// What is wrong.
+        detail: String,
+    },
+    /// The content is not a valid file of its format (or the denoiser refused it).
+    #[error("{0}")]
+    BadContent(String),
+    /// The format is unknown or cannot be told from the content.
+    #[error("{0}")]
+    UnsupportedFormat(String),
+    /// A body or upload is larger than allowed.
+    #[error("larger than the limit of {limit} bytes")]
+    TooLarge {
+        /// The limit in bytes.
+        limit: u64,
+    },
+    /// The resource is in a state that forbids the request.
+    #[error("{detail}")]
+    Conflict {
+        /// What is in the way.
+        detail: String,
+        /// For a resumable upload, the offset the server has.
+        offset: Option<u64>,
+    },
+    /// The job queue is full.
+    #[error("the job queue is full")]
+    QueueFull,
+    /// Too many synchronous requests at once.
+    #[error("too many synchronous requests at once")]
+    Busy,
+    /// The request body could not be read.
+    #[error("{0}")]
+    BadRequest(String),
+    /// The server is shutting down.
+    #[error("the server is shutting down")]
+    ShuttingDown,
+    /// Anything else: a bug or an environment failure (never shown to clients).
+    #[error("{0}")]
+    Internal(String),
+}
+
+impl JobsError {
+    /// A file operation failed.
+    pub fn io(what: impl Into<String>, source: std::io::Error) -> JobsError {
+        JobsError::Io {
+            what: what.into(),
+            source,
+        }
+    }
+}

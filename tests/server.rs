@@ -1,0 +1,1188 @@
+//! `qemd serve` end to end: the real binary on `127.0.0.1:0` with a temporary data directory,
+//! driven over HTTP. Results are compared byte for byte with what `qemd denoise` writes.
+
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use glam::DVec3;
+use qem_denoise::io::Cloud;
+use qem_denoise::points::ScalarType;
+use reqwest::StatusCode;
+use reqwest::blocking::{Client, Response};
+use serde_json::{Value, json};
+use sha2::{Digest, Sha256};
+
+const BIN: &str = env!("CARGO_BIN_EXE_qemd");
+const OCTET: &str = "application/octet-stream";
+
+/// A running `qemd serve`; killed (SIGKILL) when dropped.
+struct Server {
+    child: Child,
+    base: String,
+    data: PathBuf,
+    log: PathBuf,
+}
+
+impl Server {
+    /// Starts the server with `config` (TOML) and `env`, listening and storing as the
+    /// environment says (`QEMD_LISTEN`, `QEMD_DATA_DIR`).
+    fn start(root: &Path, config: &str, env: &[(&str, &str)]) -> Server {
+        let cfg = root.join("qemd.toml");
+        std::fs::write(&cfg, config).unwrap();
+        let data = root.join("data");
+        let n = std::fs::read_dir(root).unwrap().count();
+        let log = root.join(format!("server-{n}.log"));
+        let mut child = Command::new(BIN)
+            .arg("serve")
+            .arg("--config")
+            .arg(&cfg)
+            .env("QEMD_LISTEN", "127.0.0.1:0")
+            .env("QEMD_DATA_DIR", &data)
+            .env("QEMD_LOG_LEVEL", "info")
+            .envs(env.iter().copied())
+            .stdout(Stdio::piped())
+            .stderr(std::fs::File::create(&log).unwrap())
+            .spawn()
+            .expect("qemd serve starts");
+        let stdout = child.stdout.take().unwrap();
+        let (tx, rx) = std::sync::mpsc::channel();
+        std::thread::spawn(move || {
+            let mut line = String::new();
+            let _ = BufReader::new(stdout).read_line(&mut line);
+            let _ = tx.send(line);
+        });
+        let line = rx.recv_timeout(Duration::from_secs(60)).unwrap_or_default();
+        let addr = line
+            .trim()
+            .strip_prefix("qemd: listening on ")
+            .unwrap_or_else(|| {
+                panic!(
+                    "no address line (`{line}`); log: {}",
+                    std::fs::read_to_string(&log).unwrap_or_default()
+                )
+            })
+            .to_string();
+        Server {
+            child,
+            base: addr,
+            data,
+            log,
+        }
+    }
+
+    fn url(&self, path: &str) -> String {
+        format!("{}{path}", self.base)
+    }
+
+    fn kill(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+
+    fn log(&self) -> String {
+        std::fs::read_to_string(&self.log).unwrap_or_default()
+    }
+}
+
+impl Drop for Server {
+    fn drop(&mut self) {
+        self.kill();
+    }
+}
+
+fn client() -> Client {
+    Client::builder()
+        .timeout(Duration::from_secs(600))
+        .build()
+        .unwrap()
+}
+
+fn json_of(r: Response) -> (StatusCode, reqwest::header::HeaderMap, Value) {
+    let status = r.status();
+    let headers = r.headers().clone();
+    let body = r.bytes().unwrap();
+    let v = serde_json::from_slice(&body).unwrap_or(Value::Null);
+    (status, headers, v)
+}
+
+/// A wavy sheet with noise: `n` points, deterministic.
+fn surface(n: usize, seed: u64) -> Vec<DVec3> {
+    let mut x = seed | 1;
+    let mut f = move || {
+        x ^= x << 13;
+        x ^= x >> 7;
+        x ^= x << 17;
+        (x >> 11) as f64 / (1u64 << 53) as f64
+    };
+    let side = (n as f64).sqrt() * 0.05;
+    (0..n)
+        .map(|_| {
+            let (u, v) = (f() * side, f() * side);
+            DVec3::new(u, v, (u * 0.7).sin() * 0.5 + (v * 0.3).cos() + 0.01 * f())
+        })
+        .collect()
+}
+
+fn write_cloud(path: &Path, n: usize, seed: u64) {
+    Cloud::generated(surface(n, seed), None, ScalarType::F64)
+        .write(path, None)
+        .unwrap();
+}
+
+/// `qemd denoise input -o output args…`, returning the output's bytes.
+fn cli(input: &Path, output: &Path, args: &[&str]) -> Vec<u8> {
+    let out = Command::new(BIN)
+        .arg("denoise")
+        .arg(input)
+        .arg("-o")
+        .arg(output)
+        .arg("-q")
+        .args(args)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    std::fs::read(output).unwrap()
+}
+
+fn upload(c: &Client, s: &Server, query: &str, bytes: Vec<u8>) -> Value {
+    let (status, headers, v) = json_of(
+        c.post(s.url(&format!("/v1/uploads{query}")))
+            .header("content-type", OCTET)
+            .body(bytes)
+            .send()
+            .unwrap(),
+    );
+    assert_eq!(status, StatusCode::CREATED, "{v}");
+    assert_eq!(
+        headers["location"].to_str().unwrap(),
+        format!("/v1/uploads/{}", v["id"].as_str().unwrap())
+    );
+    v
+}
+
+fn post_job(
+    c: &Client,
+    s: &Server,
+    body: &Value,
+) -> (StatusCode, reqwest::header::HeaderMap, Value) {
+    json_of(
+        c.post(s.url("/v1/jobs"))
+            .header("content-type", "application/json")
+            .body(body.to_string())
+            .send()
+            .unwrap(),
+    )
+}
+
+fn job(c: &Client, s: &Server, id: &str) -> Value {
+    let (status, _, v) = json_of(c.get(s.url(&format!("/v1/jobs/{id}"))).send().unwrap());
+    assert_eq!(status, StatusCode::OK, "{v}");
+    v
+}
+
+/// Polls job `id` until it is no longer accepted or running.
+fn wait(c: &Client, s: &Server, id: &str) -> Value {
+    let start = Instant::now();
+    loop {
+        let v = job(c, s, id);
+        if !matches!(v["status"].as_str(), Some("accepted" | "running")) {
+            return v;
+        }
+        assert!(
+            start.elapsed() < Duration::from_secs(600),
+            "job {id} never finished; log:\n{}",
+            s.log()
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+/// Polls job `id` until `ok` holds of its view.
+fn wait_for(c: &Client, s: &Server, id: &str, what: &str, ok: impl Fn(&Value) -> bool) -> Value {
+    let start = Instant::now();
+    loop {
+        let v = job(c, s, id);
+        if ok(&v) {
+            return v;
+        }
+        assert!(
+            start.elapsed() < Duration::from_secs(300),
+            "job {id}: never {what}: {v}\nlog:\n{}",
+            s.log()
+        );
+        std::thread::sleep(Duration::from_millis(10));
+    }
+}
+
+fn download(c: &Client, s: &Server, id: &str) -> Vec<u8> {
+    let r = c
+        .get(s.url(&format!("/v1/jobs/{id}/result")))
+        .send()
+        .unwrap();
+    assert_eq!(r.status(), StatusCode::OK);
+    let len: usize = r.headers()["content-length"]
+        .to_str()
+        .unwrap()
+        .parse()
+        .unwrap();
+    let bytes = r.bytes().unwrap().to_vec();
+    assert_eq!(bytes.len(), len);
+    bytes
+}
+
+fn sha256_hex(bytes: &[u8]) -> String {
+    Sha256::digest(bytes)
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect()
+}
+
+/// Runs a job to success and returns its view and result bytes.
+fn run_job(c: &Client, s: &Server, body: Value) -> (Value, Vec<u8>) {
+    let (status, headers, v) = post_job(c, s, &body);
+    assert_eq!(status, StatusCode::CREATED, "{v}");
+    assert_eq!(v["status"], "accepted");
+    let id = v["id"].as_str().unwrap().to_string();
+    assert_eq!(
+        headers["location"].to_str().unwrap(),
+        format!("/v1/jobs/{id}")
+    );
+    let done = wait(c, s, &id);
+    assert_eq!(done["status"], "successful", "{done}\nlog:\n{}", s.log());
+    let bytes = download(c, s, &id);
+    assert_eq!(done["result"]["sha256"], sha256_hex(&bytes));
+    (done, bytes)
+}
+
+#[test]
+fn ply_and_las_jobs_write_what_the_cli_writes() {
+    let d = tempfile::tempdir().unwrap();
+    // Tiles of 2000 points: the service runs these clouds tiled, the CLI in memory.
+    let s = Server::start(d.path(), "job_tile_points = 2000\n", &[]);
+    let c = client();
+
+    let ply = d.path().join("in.ply");
+    write_cloud(&ply, 6000, 7);
+    let up = upload(&c, &s, "", std::fs::read(&ply).unwrap());
+    assert_eq!(up["format"], "ply");
+    assert_eq!(up["points"], 6000);
+    assert_eq!(up["sha256"], sha256_hex(&std::fs::read(&ply).unwrap()));
+    let (done, bytes) = run_job(
+        &c,
+        &s,
+        json!({"input": up["id"], "params": {"knn": 12, "iterations": 2}}),
+    );
+    assert_eq!(done["tiled"], true);
+    assert_eq!(done["report"]["mode"], "tiled");
+    assert!(done["report"]["tiles"].as_u64().unwrap() >= 3);
+    assert_eq!(done["progress"]["percent"], 100.0);
+    let want = cli(
+        &ply,
+        &d.path().join("cli.ply"),
+        &["--knn", "12", "--iterations", "2"],
+    );
+    assert!(bytes == want, "PLY result differs from the CLI's");
+
+    // LAS in (sniffed, no name), LAZ out, outliers flagged as class 7.
+    let las = d.path().join("in.las");
+    write_cloud(&las, 5000, 11);
+    let up = upload(&c, &s, "", std::fs::read(&las).unwrap());
+    assert_eq!(up["format"], "las");
+    let (done, bytes) = run_job(
+        &c,
+        &s,
+        json!({"input": up["id"], "method": "qem",
+               "params": {"outliers": "classify", "outlier_alpha": 2.5},
+               "output_format": "laz"}),
+    );
+    assert_eq!(done["output_format"], "laz");
+    let want = cli(
+        &las,
+        &d.path().join("cli.laz"),
+        &["--outliers", "classify", "--outlier-alpha", "2.5"],
+    );
+    assert!(bytes == want, "LAZ result differs from the CLI's");
+
+    // The job list has both, newest first, and filters by status.
+    let (status, _, v) = json_of(
+        c.get(s.url("/v1/jobs?status=successful&limit=1"))
+            .send()
+            .unwrap(),
+    );
+    assert_eq!(status, StatusCode::OK);
+    assert_eq!(v["total"], 2);
+    assert_eq!(v["jobs"].as_array().unwrap().len(), 1);
+    assert_eq!(v["jobs"][0]["output_format"], "laz");
+    assert!(
+        v["links"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|l| l["rel"] == "next")
+    );
+    let (_, _, v) = json_of(c.get(s.url("/v1/jobs?status=failed")).send().unwrap());
+    assert_eq!(v["total"], 0);
+}
+
+#[test]
+fn resumable_upload_in_chunks_has_the_same_sha256() {
+    let d = tempfile::tempdir().unwrap();
+    let s = Server::start(d.path(), "", &[]);
+    let c = client();
+    let path = d.path().join("in.ply");
+    write_cloud(&path, 4000, 3);
+    let data = std::fs::read(&path).unwrap();
+    let whole = upload(&c, &s, "", data.clone());
+
+    let r = c
+        .post(s.url("/v1/uploads?filename=scan.ply"))
+        .header("upload-length", data.len().to_string())
+        .header("tus-resumable", "1.0.0")
+        .send()
+        .unwrap();
+    assert_eq!(r.status(), StatusCode::CREATED);
+    assert_eq!(r.headers()["upload-offset"], "0");
+    assert_eq!(r.headers()["tus-resumable"], "1.0.0");
+    let loc = s.url(r.headers()["location"].to_str().unwrap());
+    let mut offset = 0;
+    for chunk in data.chunks(data.len() / 4 + 1) {
+        let r = c.head(&loc).send().unwrap();
+        assert_eq!(r.status(), StatusCode::OK);
+        assert_eq!(r.headers()["upload-offset"], offset.to_string().as_str());
+        assert_eq!(
+            r.headers()["upload-length"],
+            data.len().to_string().as_str()
+        );
+        let r = c
+            .patch(&loc)
+            .header("content-type", "application/offset+octet-stream")
+            .header("upload-offset", offset.to_string())
+            .body(chunk.to_vec())
+            .send()
+            .unwrap();
+        assert_eq!(r.status(), StatusCode::NO_CONTENT);
+        offset += chunk.len();
+        assert_eq!(r.headers()["upload-offset"], offset.to_string().as_str());
+        // Re-sending the same chunk is refused with the server's offset.
+        if offset < data.len() {
+            let r = c
+                .patch(&loc)
+                .header("content-type", "application/offset+octet-stream")
+                .header("upload-offset", (offset - chunk.len()).to_string())
+                .body(chunk.to_vec())
+                .send()
+                .unwrap();
+            assert_eq!(r.status(), StatusCode::CONFLICT);
+            assert_eq!(r.headers()["upload-offset"], offset.to_string().as_str());
+        }
+    }
+    let (status, _, v) = json_of(c.get(&loc).send().unwrap());
+    assert_eq!(status, StatusCode::OK);
+    assert_eq!(v["complete"], true);
+    assert_eq!(v["filename"], "scan.ply");
+    assert_eq!(v["sha256"], whole["sha256"]);
+    assert_eq!(v["sha256"], sha256_hex(&data));
+    assert_eq!(v["points"], 4000);
+
+    // An incomplete resumable upload cannot feed a job; after deletion it is gone.
+    let r = c
+        .post(s.url("/v1/uploads"))
+        .header("upload-length", "100")
+        .send()
+        .unwrap();
+    let partial = r.headers()["location"].to_str().unwrap().to_string();
+    let pid = partial.rsplit('/').next().unwrap();
+    let (status, _, v) = post_job(&c, &s, &json!({"input": pid}));
+    assert_eq!(status, StatusCode::CONFLICT, "{v}");
+    assert_eq!(
+        c.delete(s.url(&partial)).send().unwrap().status(),
+        StatusCode::NO_CONTENT
+    );
+    assert_eq!(
+        c.get(s.url(&partial)).send().unwrap().status(),
+        StatusCode::NOT_FOUND
+    );
+}
+
+#[test]
+fn downloads_support_range_and_etag() {
+    let d = tempfile::tempdir().unwrap();
+    let s = Server::start(d.path(), "", &[]);
+    let c = client();
+    let path = d.path().join("in.xyz");
+    write_cloud(&path, 3000, 5);
+    let up = upload(&c, &s, "", std::fs::read(&path).unwrap());
+    assert_eq!(up["format"], "xyz");
+    let (done, full) = run_job(&c, &s, json!({"input": up["id"]}));
+    let url = s.url(&format!("/v1/jobs/{}/result", done["id"].as_str().unwrap()));
+    let size = full.len();
+
+    let r = c.get(&url).send().unwrap();
+    let etag = r.headers()["etag"].to_str().unwrap().to_string();
+    assert_eq!(etag, format!("\"{}\"", sha256_hex(&full)));
+    assert_eq!(r.headers()["accept-ranges"], "bytes");
+
+    let r = c.get(&url).header("if-none-match", &etag).send().unwrap();
+    assert_eq!(r.status(), StatusCode::NOT_MODIFIED);
+
+    let r = c.get(&url).header("range", "bytes=10-109").send().unwrap();
+    assert_eq!(r.status(), StatusCode::PARTIAL_CONTENT);
+    assert_eq!(
+        r.headers()["content-range"].to_str().unwrap(),
+        format!("bytes 10-109/{size}")
+    );
+    assert_eq!(r.headers()["content-length"], "100");
+    assert_eq!(r.bytes().unwrap().to_vec(), full[10..110].to_vec());
+
+    let r = c.get(&url).header("range", "bytes=-50").send().unwrap();
+    assert_eq!(r.status(), StatusCode::PARTIAL_CONTENT);
+    assert_eq!(r.bytes().unwrap().to_vec(), full[size - 50..].to_vec());
+
+    let r = c
+        .get(&url)
+        .header("range", format!("bytes={size}-"))
+        .send()
+        .unwrap();
+    assert_eq!(r.status(), StatusCode::RANGE_NOT_SATISFIABLE);
+    assert_eq!(
+        r.headers()["content-range"].to_str().unwrap(),
+        format!("bytes */{size}")
+    );
+    assert_eq!(r.headers()["content-type"], "application/problem+json");
+
+    // A stale If-Range gets the whole file.
+    let r = c
+        .get(&url)
+        .header("range", "bytes=0-9")
+        .header("if-range", "\"stale\"")
+        .send()
+        .unwrap();
+    assert_eq!(r.status(), StatusCode::OK);
+    assert_eq!(r.bytes().unwrap().len(), size);
+
+    let r = c.head(&url).send().unwrap();
+    assert_eq!(r.status(), StatusCode::OK);
+    assert_eq!(r.headers()["content-length"], size.to_string().as_str());
+    assert_eq!(r.headers()["etag"].to_str().unwrap(), etag);
+}
+
+#[test]
+fn bad_input_gets_problem_details() {
+    let d = tempfile::tempdir().unwrap();
+    let s = Server::start(
+        d.path(),
+        "max_upload_size = \"200 KiB\"\nmax_sync_size = \"100 KiB\"\n",
+        &[],
+    );
+    let c = client();
+    let problem = |r: Response, status: StatusCode| -> Value {
+        let (got, headers, v) = json_of(r);
+        assert_eq!(got, status, "{v}");
+        assert_eq!(headers["content-type"], "application/problem+json");
+        assert_eq!(v["status"], status.as_u16());
+        assert!(v["type"].as_str().unwrap().starts_with("urn:qemd:problem:"));
+        assert!(v["title"].is_string() && v["detail"].is_string());
+        v
+    };
+    let post_upload = |query: &str, body: Vec<u8>| {
+        c.post(s.url(&format!("/v1/uploads{query}")))
+            .header("content-type", OCTET)
+            .body(body)
+            .send()
+            .unwrap()
+    };
+
+    // Too large: announced, streamed (chunked, no length), resumable, synchronous.
+    problem(
+        post_upload("", vec![b'1'; 300 << 10]),
+        StatusCode::PAYLOAD_TOO_LARGE,
+    );
+    let chunked = reqwest::blocking::Body::new(std::io::Cursor::new(vec![b'1'; 300 << 10]));
+    problem(
+        c.post(s.url("/v1/uploads"))
+            .header("content-type", OCTET)
+            .body(chunked)
+            .send()
+            .unwrap(),
+        StatusCode::PAYLOAD_TOO_LARGE,
+    );
+    problem(
+        c.post(s.url("/v1/uploads"))
+            .header("upload-length", (300 << 10).to_string())
+            .send()
+            .unwrap(),
+        StatusCode::PAYLOAD_TOO_LARGE,
+    );
+    problem(
+        c.post(s.url("/v1/denoise"))
+            .header("content-type", OCTET)
+            .body(vec![0u8; 150 << 10])
+            .send()
+            .unwrap(),
+        StatusCode::PAYLOAD_TOO_LARGE,
+    );
+    // Nothing of them is left behind.
+    let left: Vec<_> = std::fs::read_dir(s.data.join("uploads")).unwrap().collect();
+    assert!(left.is_empty(), "{left:?}");
+
+    // Bad content, unknown and unsupported formats.
+    let v = problem(
+        post_upload(
+            "?format=ply",
+            b"ply\nformat ascii 1.0\nelement vertex 3\nbogus\n".to_vec(),
+        ),
+        StatusCode::UNPROCESSABLE_ENTITY,
+    );
+    assert!(
+        !v["detail"]
+            .as_str()
+            .unwrap()
+            .contains(s.data.to_str().unwrap()),
+        "{v}"
+    );
+    problem(
+        post_upload("", b"hello, I am not a scan\n".to_vec()),
+        StatusCode::UNSUPPORTED_MEDIA_TYPE,
+    );
+    problem(
+        post_upload("?format=doc", b"0 0 0\n".to_vec()),
+        StatusCode::UNSUPPORTED_MEDIA_TYPE,
+    );
+    problem(
+        c.post(s.url("/v1/uploads"))
+            .header("content-type", "application/json")
+            .body("{}")
+            .send()
+            .unwrap(),
+        StatusCode::UNSUPPORTED_MEDIA_TYPE,
+    );
+    problem(
+        post_upload("?colour=red", b"0 0 0\n".to_vec()),
+        StatusCode::BAD_REQUEST,
+    );
+    // KITTI has no signature: refused unless named, accepted when named.
+    let kitti: Vec<u8> = (0..64u32)
+        .flat_map(|i| {
+            [
+                (i % 8) as f32,
+                (i / 8) as f32,
+                ((i * 7) % 5) as f32 * 0.01,
+                0.5,
+            ]
+            .into_iter()
+            .flat_map(f32::to_le_bytes)
+        })
+        .collect();
+    problem(
+        post_upload("", kitti.clone()),
+        StatusCode::UNSUPPORTED_MEDIA_TYPE,
+    );
+    let k = upload(&c, &s, "?format=bin", kitti);
+    assert_eq!(k["format"], "bin");
+    assert_eq!(k["points"], 64);
+
+    // Jobs: unknown and malformed upload ids, bad parameters named, bad bodies.
+    let field = |body: Value, want: &str| {
+        let v = problem(
+            c.post(s.url("/v1/jobs"))
+                .header("content-type", "application/json")
+                .body(body.to_string())
+                .send()
+                .unwrap(),
+            StatusCode::UNPROCESSABLE_ENTITY,
+        );
+        assert_eq!(v["field"], want, "{v}");
+        assert!(v["detail"].as_str().unwrap().contains(want), "{v}");
+    };
+    let kid = k["id"].as_str().unwrap();
+    field(
+        json!({"input": "00000000-0000-4000-8000-000000000000"}),
+        "input",
+    );
+    field(json!({"input": "../../etc/passwd"}), "input");
+    field(json!({}), "input");
+    field(json!({"input": kid, "params": {"knn": 1}}), "params.knn");
+    field(
+        json!({"input": kid, "params": {"knn": "many"}}),
+        "params.knn",
+    );
+    field(json!({"input": kid, "params": {"knnn": 16}}), "params.knnn");
+    field(
+        json!({"input": kid, "params": {"solve": "magic"}}),
+        "params.solve",
+    );
+    field(json!({"input": kid, "params": {"eps": 2.0}}), "params.eps");
+    field(
+        json!({"input": kid, "params": {"iterations": 0}}),
+        "params.iterations",
+    );
+    field(
+        json!({"input": kid, "params": {"outlier_alpha": -1.0}}),
+        "outlier_alpha",
+    );
+    field(
+        json!({"input": kid, "output_format": "doc"}),
+        "output_format",
+    );
+    field(
+        json!({"input": kid, "params": {"outliers": "classify"}}),
+        "outliers",
+    );
+    field(json!({"input": kid, "colour": "red"}), "colour");
+    problem(
+        c.post(s.url("/v1/jobs"))
+            .header("content-type", "application/json")
+            .body("{not json")
+            .send()
+            .unwrap(),
+        StatusCode::BAD_REQUEST,
+    );
+    problem(
+        c.post(s.url("/v1/jobs"))
+            .header("content-type", "text/plain")
+            .body(json!({"input": kid}).to_string())
+            .send()
+            .unwrap(),
+        StatusCode::UNSUPPORTED_MEDIA_TYPE,
+    );
+
+    // Unknown jobs and uploads, bad list queries.
+    let unknown = "00000000-0000-4000-8000-000000000000";
+    for path in [
+        format!("/v1/jobs/{unknown}"),
+        format!("/v1/jobs/{unknown}/result"),
+        "/v1/jobs/not-an-id".to_string(),
+        format!("/v1/uploads/{unknown}"),
+    ] {
+        problem(c.get(s.url(&path)).send().unwrap(), StatusCode::NOT_FOUND);
+    }
+    problem(
+        c.delete(s.url(&format!("/v1/jobs/{unknown}")))
+            .send()
+            .unwrap(),
+        StatusCode::NOT_FOUND,
+    );
+    problem(
+        c.patch(s.url(&format!("/v1/uploads/{unknown}")))
+            .header("content-type", "application/offset+octet-stream")
+            .header("upload-offset", "0")
+            .body(vec![1u8])
+            .send()
+            .unwrap(),
+        StatusCode::NOT_FOUND,
+    );
+    let v = problem(
+        c.get(s.url("/v1/jobs?status=done")).send().unwrap(),
+        StatusCode::UNPROCESSABLE_ENTITY,
+    );
+    assert_eq!(v["field"], "status");
+    problem(
+        c.get(s.url("/v1/jobs?limit=0")).send().unwrap(),
+        StatusCode::UNPROCESSABLE_ENTITY,
+    );
+
+    // The synchronous path refuses bad parameters and content too.
+    let v = problem(
+        c.post(s.url("/v1/denoise?format=bin&knn=2"))
+            .header("content-type", OCTET)
+            .body(vec![0u8; 64])
+            .send()
+            .unwrap(),
+        StatusCode::UNPROCESSABLE_ENTITY,
+    );
+    assert_eq!(v["field"], "knn");
+    problem(
+        c.post(s.url("/v1/denoise?format=ply"))
+            .header("content-type", OCTET)
+            .body(b"ply\nformat binary_little_endian 1.0\nelement vertex 100\nproperty float x\nend_header\n".to_vec())
+            .send()
+            .unwrap(),
+        StatusCode::UNPROCESSABLE_ENTITY,
+    );
+    assert!(!s.log().contains("panicked"));
+}
+
+#[test]
+fn tenants_see_only_their_own_uploads_and_jobs() {
+    let d = tempfile::tempdir().unwrap();
+    // Tokens from the environment (QEMD_AUTH_TOKENS), the rest from the file.
+    let s = Server::start(
+        d.path(),
+        "",
+        &[("QEMD_AUTH_TOKENS", "token-alice-1:alice,token-bob-22:bob")],
+    );
+    let c = client();
+    let (alice, bob) = ("Bearer token-alice-1", "Bearer token-bob-22");
+
+    for auth in [
+        None,
+        Some("Bearer wrong-token"),
+        Some("token-alice-1"),
+        Some("Basic abc"),
+    ] {
+        let mut r = c.get(s.url("/v1/jobs"));
+        if let Some(a) = auth {
+            r = r.header("authorization", a);
+        }
+        let (status, headers, v) = json_of(r.send().unwrap());
+        assert_eq!(status, StatusCode::UNAUTHORIZED, "{auth:?}");
+        assert_eq!(headers["content-type"], "application/problem+json");
+        assert!(headers.contains_key("www-authenticate"));
+        assert_eq!(v["status"], 401);
+    }
+    // Operations endpoints stay open.
+    assert_eq!(
+        c.get(s.url("/healthz")).send().unwrap().status(),
+        StatusCode::OK
+    );
+
+    let path = d.path().join("in.ply");
+    write_cloud(&path, 2000, 9);
+    let (status, _, up) = json_of(
+        c.post(s.url("/v1/uploads"))
+            .header("authorization", alice)
+            .header("content-type", OCTET)
+            .body(std::fs::read(&path).unwrap())
+            .send()
+            .unwrap(),
+    );
+    assert_eq!(status, StatusCode::CREATED);
+    let uid = up["id"].as_str().unwrap();
+    let (status, _, j) = json_of(
+        c.post(s.url("/v1/jobs"))
+            .header("authorization", alice)
+            .header("content-type", "application/json")
+            .body(json!({"input": uid}).to_string())
+            .send()
+            .unwrap(),
+    );
+    assert_eq!(status, StatusCode::CREATED);
+    let jid = j["id"].as_str().unwrap();
+    // Let it finish (as alice), so that bob's 404s are not about state.
+    let start = Instant::now();
+    loop {
+        let (_, _, v) = json_of(
+            c.get(s.url(&format!("/v1/jobs/{jid}")))
+                .header("authorization", alice)
+                .send()
+                .unwrap(),
+        );
+        if v["status"] == "successful" {
+            break;
+        }
+        assert!(start.elapsed() < Duration::from_secs(300), "{v}");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+
+    for path in [
+        format!("/v1/uploads/{uid}"),
+        format!("/v1/jobs/{jid}"),
+        format!("/v1/jobs/{jid}/result"),
+    ] {
+        let (status, _, v) = json_of(
+            c.get(s.url(&path))
+                .header("authorization", bob)
+                .send()
+                .unwrap(),
+        );
+        assert_eq!(status, StatusCode::NOT_FOUND, "{path}: {v}");
+        let ok = c
+            .get(s.url(&path))
+            .header("authorization", alice)
+            .send()
+            .unwrap();
+        assert_eq!(ok.status(), StatusCode::OK, "{path}");
+    }
+    assert_eq!(
+        c.delete(s.url(&format!("/v1/jobs/{jid}")))
+            .header("authorization", bob)
+            .send()
+            .unwrap()
+            .status(),
+        StatusCode::NOT_FOUND
+    );
+    let (status, _, v) = json_of(
+        c.post(s.url("/v1/jobs"))
+            .header("authorization", bob)
+            .header("content-type", "application/json")
+            .body(json!({"input": uid}).to_string())
+            .send()
+            .unwrap(),
+    );
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY);
+    assert_eq!(v["field"], "input");
+    let (_, _, v) = json_of(
+        c.get(s.url("/v1/jobs"))
+            .header("authorization", bob)
+            .send()
+            .unwrap(),
+    );
+    assert_eq!(v["total"], 0);
+    let (_, _, v) = json_of(
+        c.get(s.url("/v1/jobs"))
+            .header("authorization", alice)
+            .send()
+            .unwrap(),
+    );
+    assert_eq!(v["total"], 1);
+}
+
+/// Points of the long jobs: a few seconds of work in either build.
+fn long_job_points() -> u64 {
+    if cfg!(debug_assertions) {
+        300_000
+    } else {
+        3_000_000
+    }
+}
+
+fn synth(path: &Path, points: u64) {
+    let out = Command::new(BIN)
+        .args(["synth", "torus", "-o"])
+        .arg(path)
+        .args(["--points", &points.to_string(), "--seed", "3"])
+        .output()
+        .unwrap();
+    assert!(out.status.success());
+}
+
+fn jobs_running(c: &Client, s: &Server) -> String {
+    let text = c.get(s.url("/metrics")).send().unwrap().text().unwrap();
+    text.lines()
+        .find(|l| l.starts_with("qemd_jobs_running "))
+        .unwrap_or_default()
+        .to_string()
+}
+
+#[test]
+fn full_queue_answers_429_and_delete_cancels_within_a_second() {
+    let d = tempfile::tempdir().unwrap();
+    let n = long_job_points();
+    let config = format!(
+        "job_concurrency = 1\nqueue_capacity = 1\njob_tile_points = {}\n",
+        n / 60
+    );
+    let s = Server::start(d.path(), &config, &[]);
+    let c = client();
+    let path = d.path().join("big.ply");
+    synth(&path, n);
+    let up = upload(&c, &s, "", std::fs::read(&path).unwrap());
+    let body = json!({"input": up["id"]});
+
+    let (status, _, a) = post_job(&c, &s, &body);
+    assert_eq!(status, StatusCode::CREATED);
+    let a = a["id"].as_str().unwrap().to_string();
+    let v = wait_for(&c, &s, &a, "in its tiles", |v| {
+        v["status"] == "running" && v["progress"]["phase"] == "tiles"
+    });
+    assert!(v["progress"]["tiles_total"].as_u64().unwrap() >= 30, "{v}");
+
+    // One queued job fits, the next is refused.
+    let (status, _, b) = post_job(&c, &s, &body);
+    assert_eq!(status, StatusCode::CREATED, "{b}");
+    let b = b["id"].as_str().unwrap().to_string();
+    let (status, headers, v) = post_job(&c, &s, &body);
+    assert_eq!(status, StatusCode::TOO_MANY_REQUESTS, "{v}");
+    assert!(
+        headers["retry-after"]
+            .to_str()
+            .unwrap()
+            .parse::<u64>()
+            .unwrap()
+            >= 1
+    );
+    assert_eq!(headers["content-type"], "application/problem+json");
+
+    // DELETE the running job: cancelled, dismissed, its files gone; the worker is free again
+    // (B starts) within a second.
+    assert!(s.data.join("jobs").join(&a).exists());
+    let t0 = Instant::now();
+    let (status, _, v) = json_of(c.delete(s.url(&format!("/v1/jobs/{a}"))).send().unwrap());
+    assert_eq!(status, StatusCode::OK, "{v}");
+    assert_eq!(v["status"], "dismissed");
+    assert!(
+        !s.data.join("jobs").join(&a).exists(),
+        "job files left behind"
+    );
+    wait_for(&c, &s, &b, "running", |v| v["status"] == "running");
+    let took = t0.elapsed();
+    assert!(
+        took < Duration::from_millis(1200),
+        "cancellation took {took:?}"
+    );
+    assert_eq!(job(&c, &s, &a)["status"], "dismissed");
+    assert_eq!(
+        c.get(s.url(&format!("/v1/jobs/{a}/result")))
+            .send()
+            .unwrap()
+            .status(),
+        StatusCode::NOT_FOUND
+    );
+
+    // Dismiss B too; the queue has room again.
+    let (status, _, v) = json_of(c.delete(s.url(&format!("/v1/jobs/{b}"))).send().unwrap());
+    assert_eq!(
+        (status, v["status"].as_str()),
+        (StatusCode::OK, Some("dismissed"))
+    );
+    assert!(!s.data.join("jobs").join(&b).exists());
+    let start = Instant::now();
+    while jobs_running(&c, &s) != "qemd_jobs_running 0" {
+        assert!(start.elapsed() < Duration::from_secs(2), "B did not stop");
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    let (status, _, v) = post_job(&c, &s, &body);
+    assert_eq!(status, StatusCode::CREATED, "{v}");
+    let e = v["id"].as_str().unwrap();
+    let (status, _, _) = json_of(c.delete(s.url(&format!("/v1/jobs/{e}"))).send().unwrap());
+    assert_eq!(status, StatusCode::OK);
+    let (_, _, v) = json_of(c.get(s.url("/v1/jobs?status=dismissed")).send().unwrap());
+    assert_eq!(v["total"], 3);
+}
+
+#[test]
+fn killed_server_resumes_the_job_from_its_checkpoints() {
+    let d = tempfile::tempdir().unwrap();
+    let config = "job_tile_points = 1000\n";
+    let mut s = Server::start(d.path(), config, &[]);
+    let c = client();
+    let path = d.path().join("in.ply");
+    write_cloud(
+        &path,
+        if cfg!(debug_assertions) {
+            20_000
+        } else {
+            60_000
+        },
+        21,
+    );
+    let up = upload(&c, &s, "", std::fs::read(&path).unwrap());
+    let (status, _, v) = post_job(&c, &s, &json!({"input": up["id"]}));
+    assert_eq!(status, StatusCode::CREATED);
+    let id = v["id"].as_str().unwrap().to_string();
+
+    // SIGKILL as soon as a tile checkpoint exists.
+    let work = s.data.join("jobs").join(&id).join("work");
+    let start = Instant::now();
+    let checkpoints = |dir: &Path| {
+        std::fs::read_dir(dir)
+            .map(|it| {
+                it.flatten()
+                    .filter(|e| {
+                        let n = e.file_name().to_string_lossy().into_owned();
+                        n.starts_with("tile_") && n.ends_with(".json")
+                    })
+                    .count()
+            })
+            .unwrap_or(0)
+    };
+    while checkpoints(&work) == 0 {
+        assert!(
+            start.elapsed() < Duration::from_secs(300),
+            "no checkpoint; log:\n{}",
+            s.log()
+        );
+        std::thread::sleep(Duration::from_millis(1));
+    }
+    s.kill();
+    let kept = checkpoints(&work);
+    assert!(kept >= 1);
+
+    // Restart on the same data directory: the job is re-queued and resumes.
+    let s = Server::start(d.path(), config, &[]);
+    let done = wait(&c, &s, &id);
+    assert_eq!(done["status"], "successful", "{done}\nlog:\n{}", s.log());
+    let report = &done["report"];
+    let (tiles, resumed) = (
+        report["tiles"].as_u64().unwrap(),
+        report["tiles_resumed"].as_u64().unwrap(),
+    );
+    assert!(
+        resumed >= 1 && resumed < tiles,
+        "resumed {resumed} of {tiles} tiles"
+    );
+    assert!(s.log().contains("re-queued"));
+    let bytes = download(&c, &s, &id);
+    let want = cli(&path, &d.path().join("cli.ply"), &[]);
+    assert!(
+        bytes == want,
+        "resumed result differs from an uninterrupted CLI run"
+    );
+    assert!(
+        !work.exists(),
+        "the work directory is removed after success"
+    );
+}
+
+#[test]
+fn operations_endpoints_and_graceful_shutdown() {
+    let d = tempfile::tempdir().unwrap();
+    let s = Server::start(d.path(), "log_format = \"json\"\n", &[]);
+    let c = client();
+    let (status, _, v) = json_of(c.get(s.url("/healthz")).send().unwrap());
+    assert_eq!((status, v["status"].as_str()), (StatusCode::OK, Some("ok")));
+    let (status, _, v) = json_of(c.get(s.url("/readyz")).send().unwrap());
+    assert_eq!(
+        (status, v["status"].as_str()),
+        (StatusCode::OK, Some("ready"))
+    );
+    let (status, _, doc) = json_of(c.get(s.url("/openapi.json")).send().unwrap());
+    assert_eq!(status, StatusCode::OK);
+    assert!(doc["paths"]["/v1/jobs/{id}/result"]["get"].is_object());
+
+    let path = d.path().join("in.ply");
+    write_cloud(&path, 2500, 4);
+    let up = upload(&c, &s, "", std::fs::read(&path).unwrap());
+    run_job(&c, &s, json!({"input": up["id"]}));
+    let r = c
+        .post(s.url("/v1/denoise?knn=8"))
+        .header("content-type", OCTET)
+        .header("x-request-id", "req-sync-1")
+        .body(std::fs::read(&path).unwrap())
+        .send()
+        .unwrap();
+    assert_eq!(r.status(), StatusCode::OK);
+    assert_eq!(r.headers()["x-request-id"], "req-sync-1");
+    assert_eq!(r.headers()["x-qemd-points-in"], "2500");
+    let want = cli(&path, &d.path().join("cli.ply"), &["--knn", "8"]);
+    assert!(
+        r.bytes().unwrap().to_vec() == want,
+        "sync result differs from the CLI's"
+    );
+
+    let r = c.get(s.url("/metrics")).send().unwrap();
+    assert_eq!(r.status(), StatusCode::OK);
+    assert!(
+        r.headers()["content-type"]
+            .to_str()
+            .unwrap()
+            .starts_with("text/plain")
+    );
+    let text = r.text().unwrap();
+    for line in [
+        "qemd_jobs{state=\"successful\"} 1",
+        "qemd_jobs{state=\"running\"} 0",
+        "qemd_queue_depth 0",
+        "qemd_jobs_running 0",
+        "qemd_points_processed_total{path=\"job\"} 2500",
+        "qemd_points_processed_total{path=\"sync\"} 2500",
+        "qemd_sync_requests_total{outcome=\"ok\"} 1",
+        "qemd_uploads_total 1",
+    ] {
+        assert!(
+            text.lines().any(|l| l == line),
+            "missing `{line}` in\n{text}"
+        );
+    }
+    assert!(text.contains("qemd_phase_duration_seconds_bucket{phase=\"read\""));
+    assert!(text.contains("qemd_run_duration_seconds_count{path=\"job\"} 1"));
+
+    // JSON log lines carry the request id.
+    let log = s.log();
+    let line = log
+        .lines()
+        .find(|l| l.contains("req-sync-1"))
+        .unwrap_or_else(|| panic!("request id not logged:\n{log}"));
+    let v: Value = serde_json::from_str(line).unwrap();
+    assert!(
+        v["timestamp"].is_string() && v["level"].is_string(),
+        "{line}"
+    );
+
+    // SIGTERM: a clean exit.
+    let mut s = s;
+    let pid = s.child.id().to_string();
+    assert!(
+        Command::new("kill")
+            .args(["-TERM", &pid])
+            .status()
+            .unwrap()
+            .success()
+    );
+    let start = Instant::now();
+    let status = loop {
+        if let Some(st) = s.child.try_wait().unwrap() {
+            break st;
+        }
+        assert!(
+            start.elapsed() < Duration::from_secs(15),
+            "no exit after SIGTERM"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    assert!(status.success(), "{status:?}\n{}", s.log());
+    assert!(s.log().contains("stopped"));
+}
+
+#[test]
+fn sigterm_puts_a_running_job_back_in_the_queue() {
+    let d = tempfile::tempdir().unwrap();
+    let config = "job_tile_points = 1000\n";
+    let mut s = Server::start(d.path(), config, &[]);
+    let c = client();
+    let path = d.path().join("in.ply");
+    write_cloud(
+        &path,
+        if cfg!(debug_assertions) {
+            20_000
+        } else {
+            60_000
+        },
+        33,
+    );
+    let up = upload(&c, &s, "", std::fs::read(&path).unwrap());
+    let (status, _, v) = post_job(&c, &s, &json!({"input": up["id"], "params": {"knn": 10}}));
+    assert_eq!(status, StatusCode::CREATED);
+    let id = v["id"].as_str().unwrap().to_string();
+    let work = s.data.join("jobs").join(&id).join("work");
+    let start = Instant::now();
+    while !std::fs::read_dir(&work).is_ok_and(|mut it| {
+        it.any(|e| e.is_ok_and(|e| e.file_name().to_string_lossy().ends_with(".res")))
+    }) {
+        assert!(start.elapsed() < Duration::from_secs(300), "no checkpoint");
+        std::thread::sleep(Duration::from_millis(1));
+    }
+    let pid = s.child.id().to_string();
+    assert!(
+        Command::new("kill")
+            .args(["-TERM", &pid])
+            .status()
+            .unwrap()
+            .success()
+    );
+    let start = Instant::now();
+    let exit = loop {
+        if let Some(st) = s.child.try_wait().unwrap() {
+            break st;
+        }
+        assert!(
+            start.elapsed() < Duration::from_secs(15),
+            "no exit after SIGTERM"
+        );
+        std::thread::sleep(Duration::from_millis(10));
+    };
+    assert!(exit.success(), "{exit:?}\n{}", s.log());
+    let log = s.log();
+    s.kill();
+    assert!(
+        log.contains("resumes at the next start") || log.contains("successful"),
+        "{log}"
+    );
+    let s = Server::start(d.path(), config, &[]);
+    let done = wait(&c, &s, &id);
+    assert_eq!(done["status"], "successful", "{done}");
+    if log.contains("resumes at the next start") {
+        assert!(
+            done["report"]["tiles_resumed"].as_u64().unwrap() >= 1,
+            "{done}"
+        );
+    }
+    let want = cli(&path, &d.path().join("cli.ply"), &["--knn", "10"]);
+    assert!(download(&c, &s, &id) == want);
+}
