@@ -34,7 +34,7 @@ use glam::DVec3;
 use thiserror::Error;
 
 use crate::denoise::cloud::{self, CloudRun, Globals};
-use crate::denoise::{self, DenoiseError, Params, PhaseTiming, Stats, Timer, origin_of};
+use crate::denoise::{self, DenoiseError, Method, Params, PhaseTiming, Stats, Timer, origin_of};
 use crate::geometry::ExactSum;
 use crate::io::{self, BATCH, Cloud, Extras, Format, IoError, SinkOptions, Source, SourceInfo};
 use crate::points::{FLAG_NOISE, PointBatch};
@@ -276,10 +276,18 @@ fn same_file(a: &Path, b: &Path) -> bool {
     }
 }
 
-/// Working-set bytes per point of the point kernel with neighbourhood size `k` (positions in
-/// three layouts, the k-NN lists, the grid pass's sort keys, per-point results).
-pub fn bytes_per_point(k: usize, record_len: usize) -> u64 {
-    (record_len + 4 * k + 240) as u64
+/// Working-set bytes per point of the point kernel (positions in three layouts, the k-NN lists,
+/// the grid pass's sort keys, per-point results; with a normal filter, its spatial weights and
+/// normal copies). Measured peak RSS per tile point (10 M-point runs, docs/BENCHMARKS.md):
+/// about 430 B with `--paper`, 670 B with the default; the tile target leaves the rest of the
+/// budget as headroom.
+pub fn bytes_per_point(params: &Params, record_len: usize) -> u64 {
+    let k = params.k();
+    let filter = match params.method {
+        Method::Qem if params.schedule(false).filter > 0 => 8 * k + 112,
+        _ => 0,
+    };
+    (record_len + 4 * k + 240 + filter) as u64
 }
 
 /// Outlier threshold from exact sums of the statistic and its square.
@@ -322,7 +330,7 @@ pub fn run(job: &Job, opts: &RunOptions) -> Result<Report, PipelineError> {
         }
         run_mesh(job)?
     } else {
-        let per_point = bytes_per_point(job.params.k(), info.schema.record_len);
+        let per_point = bytes_per_point(&job.params, info.schema.record_len);
         let fits = info
             .len
             .is_some_and(|n| n.saturating_mul(per_point) <= opts.memory_budget);

@@ -4,9 +4,9 @@
 //! counts, and a *bottom-k* sample: the points whose hashed global index is among the `S`
 //! smallest, which is a uniform sample that does not depend on batch sizes or thread counts.
 //! Tiles are then chosen by count, not by area: a k-d split of the sample along the longest axis,
-//! at the quantile that leaves each side a whole number of target-sized tiles, until each leaf is
-//! expected to hold at most the target number of points. Tiles thus come out close to the
-//! target for any cloud size.
+//! at the quantile that leaves the left side a whole number of full target-sized tiles, until
+//! each leaf is expected to hold at most the target number of points. Every tile but one thus
+//! holds the target for any cloud size.
 //!
 //! ```text
 //!   split tree (axis, value)            leaves = tiles; ownership is half-open:
@@ -299,12 +299,12 @@ fn split(
         return at;
     }
     idx.sort_unstable_by(|&a, &b| pts[a][axis].total_cmp(&pts[b][axis]).then(a.cmp(&b)));
-    // Split at the quantile that gives both sides a whole number of target-sized tiles, so every
-    // tile ends up close to the target whatever the cloud's size (and the memory a tile needs
-    // does not depend on the size of the cloud).
+    // Split where the left side holds a whole number of full target-sized tiles and the right
+    // side the rest: every tile but the last one holds the target, whatever the cloud's size, so
+    // the memory a tile needs (the peak RSS) does not depend on the size of the cloud.
     let count = (estimate / target).ceil().max(2.0);
     let left = (count / 2.0).floor();
-    let mid = ((idx.len() as f64 * left / count).round() as usize).clamp(1, idx.len() - 1);
+    let mid = ((left * target / weight).round() as usize).clamp(1, idx.len() - 1);
     let mut value = pts[idx[mid]][axis];
     if value <= bx.min[axis] || value >= bx.max[axis] {
         // Degenerate median (many equal coordinates): split the box in half instead.
