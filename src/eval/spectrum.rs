@@ -551,6 +551,9 @@ pub struct Bands {
     pub peak_outside_shape: f64,
     /// Its frequency in cycles per L.
     pub peak_outside_shape_frequency: f64,
+    /// The first frequency (cycles per L) where the gain drops below ½: the half-amplitude
+    /// cut-off of a low-pass; `None` if it never does.
+    pub half: Option<f64>,
 }
 
 impl Bands {
@@ -592,6 +595,11 @@ impl Bands {
             peak_frequency: peak.1,
             peak_outside_shape: outside.0,
             peak_outside_shape_frequency: outside.1,
+            half: gain
+                .iter()
+                .zip(frequency)
+                .find(|(g, _)| **g < 0.5)
+                .map(|(_, &f)| f),
         }
     }
 }
@@ -653,6 +661,78 @@ pub struct FrequencyResponse {
     pub methods: Vec<MethodResponse>,
 }
 
+/// The noisy patch and its spectrum, against which any result on the same patch is measured.
+struct Experiment {
+    patch: Mesh,
+    noisy: Vec<DVec3>,
+    l: f64,
+    grid: GridSpec,
+    reference: Reference,
+    /// The offset every spectrum subtracts (the windowed mean of the noisy field).
+    offset: f64,
+    noisy_spectrum: RadialSpectrum,
+    /// Rings 1 to [`SpectrumSpec::max_ring`].
+    rings: std::ops::RangeInclusive<usize>,
+    frequency: Vec<f64>,
+    clean: Vec<f64>,
+}
+
+impl Experiment {
+    fn new(spec: &SpectrumSpec) -> Result<Experiment, EvalError> {
+        spec.validate()?;
+        let patch = height_patch(spec.cells, spec.noise.seed)?;
+        let noisy = add_noise(&patch.positions, Some(&patch.faces), &spec.noise)?;
+        let grid = spec.grid();
+        let reference = Reference::new(patch.positions.clone(), Some(patch.faces.clone()))?;
+        let noisy_grid = resample(&noisy.positions, &patch.faces, &grid)?;
+        let offset = window_mean(&noisy_grid);
+        let noisy_spectrum = radial_spectrum(&noisy_grid, offset)?;
+        let rings = 1..=spec.max_ring();
+        let frequency: Vec<f64> = rings
+            .clone()
+            .map(|r| noisy_spectrum.frequency(r) * noisy.l)
+            .collect();
+        let clean_spectrum =
+            radial_spectrum(&resample(&patch.positions, &patch.faces, &grid)?, offset)?;
+        let clean = gain(&noisy_spectrum, &clean_spectrum)[rings.clone()].to_vec();
+        Ok(Experiment {
+            l: noisy.l,
+            noisy: noisy.positions,
+            patch,
+            grid,
+            reference,
+            offset,
+            noisy_spectrum,
+            rings,
+            frequency,
+            clean,
+        })
+    }
+
+    /// The response of whatever turned the noisy patch into `positions`.
+    fn measure(&self, name: &str, positions: Vec<DVec3>) -> Result<MethodResponse, EvalError> {
+        let g = resample(&positions, &self.patch.faces, &self.grid)?;
+        let s = radial_spectrum(&g, self.offset)?;
+        let gains = gain(&self.noisy_spectrum, &s)[self.rings.clone()].to_vec();
+        let diff = self
+            .rings
+            .clone()
+            .map(|r| (self.noisy_spectrum.magnitude[r] - s.magnitude[r]) / self.l)
+            .collect();
+        Ok(MethodResponse {
+            name: name.to_string(),
+            bands: Bands::of(&gains, &self.clean, &self.frequency),
+            gain: gains,
+            diff,
+            metrics: self
+                .reference
+                .evaluate(&positions, Some(&self.patch.faces))?,
+            positions,
+            filled: g.filled,
+        })
+    }
+}
+
 /// Runs the experiment: builds the patch, adds the noise, denoises it with every method and
 /// measures the response.
 ///
@@ -662,52 +742,21 @@ pub fn frequency_response(
     spec: &SpectrumSpec,
     methods: &[TableMethod],
 ) -> Result<FrequencyResponse, EvalError> {
-    spec.validate()?;
-    let patch = height_patch(spec.cells, spec.noise.seed)?;
-    let noisy = add_noise(&patch.positions, Some(&patch.faces), &spec.noise)?;
-    let l = noisy.l;
-    let grid = spec.grid();
-    let reference = Reference::new(patch.positions.clone(), Some(patch.faces.clone()))?;
-    let noisy_grid = resample(&noisy.positions, &patch.faces, &grid)?;
-    let offset = window_mean(&noisy_grid);
-    let noisy_spectrum = radial_spectrum(&noisy_grid, offset)?;
-    let rings = 1..=spec.max_ring();
-    let frequency: Vec<f64> = rings
-        .clone()
-        .map(|r| noisy_spectrum.frequency(r) * l)
-        .collect();
-    let clean_spectrum =
-        radial_spectrum(&resample(&patch.positions, &patch.faces, &grid)?, offset)?;
-    let clean = gain(&noisy_spectrum, &clean_spectrum)[rings.clone()].to_vec();
+    let e = Experiment::new(spec)?;
     let mut out = Vec::with_capacity(methods.len());
     for m in methods {
-        let denoised = denoise(&noisy.positions, Some(&patch.faces), &m.params)?;
-        let g = resample(&denoised.positions, &patch.faces, &grid)?;
-        let s = radial_spectrum(&g, offset)?;
-        let gains = gain(&noisy_spectrum, &s)[rings.clone()].to_vec();
-        let diff = rings
-            .clone()
-            .map(|r| (noisy_spectrum.magnitude[r] - s.magnitude[r]) / l)
-            .collect();
-        out.push(MethodResponse {
-            name: m.name.clone(),
-            bands: Bands::of(&gains, &clean, &frequency),
-            gain: gains,
-            diff,
-            metrics: reference.evaluate(&denoised.positions, Some(&patch.faces))?,
-            positions: denoised.positions,
-            filled: g.filled,
-        });
+        let denoised = denoise(&e.noisy, Some(&e.patch.faces), &m.params)?;
+        out.push(e.measure(&m.name, denoised.positions)?);
     }
     Ok(FrequencyResponse {
         spec: *spec,
-        noisy_metrics: reference.evaluate(&noisy.positions, Some(&patch.faces))?,
-        patch,
-        noisy: noisy.positions,
-        l,
-        grid,
-        frequency,
-        clean,
+        noisy_metrics: e.reference.evaluate(&e.noisy, Some(&e.patch.faces))?,
+        patch: e.patch,
+        noisy: e.noisy,
+        l: e.l,
+        grid: e.grid,
+        frequency: e.frequency,
+        clean: e.clean,
         methods: out,
     })
 }
@@ -721,6 +770,11 @@ pub fn method_colour(name: &str) -> [u8; 3] {
         "default" => colours::DEFAULT,
         _ => colours::OTHER,
     }
+}
+
+/// A half-amplitude cut-off (cycles per L) as a wavelength.
+fn half(f: Option<f64>) -> String {
+    f.map_or_else(|| "–".to_string(), |f| format!("{:.1} L", 1.0 / f))
 }
 
 fn fmt_opt(v: Option<f64>) -> String {
@@ -877,6 +931,7 @@ impl FrequencyResponse {
             "gain, shape band",
             "gain, transition",
             "gain, noise band",
+            "half-amplitude λ",
             "max gain outside the shape band",
         ]
         .map(String::from)
@@ -890,6 +945,7 @@ impl FrequencyResponse {
                 fmt_opt(c.shape),
                 fmt_opt(c.transition),
                 fmt_opt(c.noise),
+                half(c.half),
                 "–".into(),
             ],
             vec![
@@ -899,6 +955,7 @@ impl FrequencyResponse {
                 "1.00".into(),
                 "1.00".into(),
                 "1.00".into(),
+                "–".into(),
                 "1.00".into(),
             ],
         ];
@@ -911,6 +968,7 @@ impl FrequencyResponse {
                 fmt_opt(b.shape),
                 fmt_opt(b.transition),
                 fmt_opt(b.noise),
+                half(b.half),
                 if b.peak_outside_shape_frequency.is_finite() {
                     format!(
                         "{:.2} at λ = {:.1} L",
@@ -981,6 +1039,18 @@ impl FrequencyResponse {
                 "amplifies the shape (gain {g:.2} where the shape dominates)"
             )),
             None => {}
+        }
+        match (b.half, self.clean_bands().half) {
+            (Some(f), Some(c)) => parts.push(format!(
+                "drops below half amplitude at wavelengths under {:.1} L (the clean surface: {:.1} L)",
+                1.0 / f,
+                1.0 / c
+            )),
+            (Some(f), None) => parts.push(format!(
+                "drops below half amplitude at wavelengths under {:.1} L",
+                1.0 / f
+            )),
+            (None, _) => parts.push("never drops below half amplitude".into()),
         }
         if let Some(g) = b.noise {
             parts.push(format!(
@@ -1108,6 +1178,60 @@ mod tests {
         assert!(s.power.iter().all(|&p| p < 1e-24), "{:?}", s.power);
         let zero = grid_of(16, |_, _| 0.0);
         assert_eq!(radial_spectrum(&zero, 0.0).unwrap().peak(), None);
+    }
+
+    #[test]
+    fn radial_binning_puts_every_term_in_its_ring_once() {
+        // A single spike: after the window its DFT has the same magnitude m in every term, so each
+        // ring's power is its term count times m² and its mean magnitude is m.
+        let n = 8;
+        let g = grid_of(n, |i, j| if (i, j) == (3, 4) { 1.0 } else { 0.0 });
+        let s = radial_spectrum(&g, 0.0).unwrap();
+        // Integer vectors k with components in −3..=4 by round(|k|), counted by hand:
+        // ring 1: (±1, 0), (0, ±1), (±1, ±1); ring 2: (±2, 0), (0, ±2), (±2, ±1), (±1, ±2); ring 3:
+        // (±3, 0), (0, ±3), (±3, ±1), (±1, ±3), (±2, ±2); ring 4: (4, 0..=±2), (0..=±2, 4), (±3, ±2),
+        // (±2, ±3), (±3, ±3). The 5 left (|k| ≥ 4.5) lie beyond the last ring.
+        assert_eq!(s.count, [1, 8, 12, 16, 22]);
+        let w = hann(n);
+        let norm: f64 = w.iter().sum::<f64>().powi(2);
+        let m = w[3] * w[4] / norm;
+        for r in 0..s.count.len() {
+            assert!((s.magnitude[r] - m).abs() < 1e-15 * m.max(1.0), "ring {r}");
+            let p = s.count[r] as f64 * m * m;
+            assert!((s.power[r] - p).abs() < 1e-12 * p, "ring {r}");
+        }
+        // Parseval over the terms the rings hold: Σ power = (59 / 64) · n² · Σ|windowed field|².
+        let total: f64 = s.power.iter().sum();
+        let field = (w[3] * w[4] / norm).powi(2) * (n * n) as f64;
+        assert!((total - field * 59.0 / 64.0).abs() < 1e-12 * total);
+    }
+
+    #[test]
+    fn the_identity_operator_has_gain_one_and_the_clean_surface_the_ideal_gain() {
+        let spec = SpectrumSpec {
+            cells: 24,
+            ..SpectrumSpec::default()
+        };
+        let e = Experiment::new(&spec).unwrap();
+        let id = e.measure("identity", e.noisy.clone()).unwrap();
+        assert_eq!(id.gain.len(), spec.max_ring());
+        for (r, g) in id.gain.iter().enumerate() {
+            assert!((g - 1.0).abs() < 1e-12, "ring {}: {g}", r + 1);
+        }
+        assert!(id.diff.iter().all(|d| d.abs() < 1e-12), "{:?}", id.diff);
+        assert_eq!(id.bands.half, None);
+        assert!((id.bands.peak - 1.0).abs() < 1e-12);
+        assert_eq!(id.filled, 0);
+        // Handing in the clean patch reproduces the reference curve: gain = |F_clean| / |F_noisy|.
+        let clean = e.measure("clean", e.patch.positions.clone()).unwrap();
+        assert_eq!(clean.gain, e.clean);
+        assert_eq!(clean.metrics.surf_std, Some(0.0));
+        // And the clean curve starts near 1 (the shape) and ends well below (the noise).
+        assert!(
+            e.clean[0] > 0.9 && *e.clean.last().unwrap() < 0.5,
+            "{:?}",
+            e.clean
+        );
     }
 
     #[test]
