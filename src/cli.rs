@@ -375,6 +375,9 @@ pub struct ReportArgs {
     /// Comma-separated noise seeds; the tables average over them.
     #[arg(long, default_value = "0,1,2,3,4", value_delimiter = ',')]
     pub seeds: Vec<u64>,
+    /// Comma-separated noise levels (σ as a fraction of L) of the tables and charts.
+    #[arg(long, default_value = "0.2,0.4,0.8", value_delimiter = ',')]
+    pub levels: Vec<f64>,
     /// Folder of the real benchmark pairs (skipped with a note when absent).
     #[arg(long, default_value = crate::eval::pairs::DEFAULT_DIR)]
     pub pairs: PathBuf,

@@ -439,10 +439,8 @@ fn report(a: ReportArgs) -> Result<()> {
         ),
         command: Some(command_line()),
         seeds: a.seeds.clone(),
-        render: RenderOptions {
-            view: a.view.parse()?,
-            ..render_options("iso", &format!("{0}x{0}", a.size))?
-        },
+        levels: a.levels.clone(),
+        render: render_options(&a.view, &format!("{0}x{0}", a.size))?,
         pairs_dir: (!a.no_pairs).then(|| a.pairs.clone()),
         spectrum: Some(SpectrumSpec {
             cells: a.patch,

@@ -1,5 +1,5 @@
-//! The quality report: one folder with a self-contained `index.html` and a `README.md` (plus the
-//! figures they show) that puts qemd's default operator next to the paper's operator, the
+//! The quality report: one folder with an `index.html` and a `README.md` (plus the figures they
+//! show) that puts qemd's default operator next to the paper's operator, the
 //! bilateral baseline and the noisy input.
 //!
 //! [`write_report`] runs, on one clean mesh:
@@ -12,9 +12,11 @@
 //! * the real benchmark pairs ([`super::pairs`]; skipped with a note where the files are absent);
 //! * the frequency response ([`super::spectrum`]) with a paragraph on what the curves show.
 //!
-//! The HTML embeds everything (SVG inline, PNG as data URIs), so the file can travel alone; the
-//! Markdown links the same figures as files. The output depends only on the inputs and the
-//! spec: no dates or timings, so a regenerated report differs only where results do.
+//! Both documents are built from one document model and link the figures (SVG charts, PNG renderings) as
+//! files of the same folder, so the folder is the unit to keep or commit and no figure is stored
+//! twice. Besides them the folder holds `table.json` (every run) and `pairs.json`. The output
+//! depends only on the inputs and the spec: no dates or timings, so a regenerated report differs
+//! only where results do.
 
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -22,12 +24,12 @@ use std::path::{Path, PathBuf};
 use super::metrics::Metrics;
 use super::noise::{NoiseSpec, add_noise_with_length};
 use super::pairs::{Pair, PairsOutcome, benchmark_pairs, run_pairs};
-use super::plot::{LineChart, Series};
+use super::plot::{LineChart, Series, colours};
 use super::render::{RenderOptions, render};
-use super::spectrum::{
-    FrequencyResponse, SpectrumSpec, frequency_response, method_colour, write_file,
+use super::spectrum::{FrequencyResponse, SpectrumSpec, frequency_response, write_file};
+use super::table::{
+    NOISY, Summary, Table, TableMethod, TableRow, TableSpec, run_table_with_progress,
 };
-use super::table::{NOISY, Table, TableMethod, TableSpec, run_table_with_progress};
 use super::{EvalError, Mesh, scale_length};
 use crate::denoise::{Method, Params, denoise};
 
@@ -54,6 +56,17 @@ pub fn report_methods() -> Vec<TableMethod> {
         ),
         TableMethod::new(DEFAULT, Params::default()),
     ]
+}
+
+/// The colour of a method in every chart of the report.
+pub fn method_colour(name: &str) -> [u8; 3] {
+    match name {
+        NOISY => colours::NOISY,
+        FAITHFUL => colours::FAITHFUL,
+        BILATERAL => colours::BILATERAL,
+        DEFAULT => colours::DEFAULT,
+        _ => colours::OTHER,
+    }
 }
 
 /// A readable label for a row name.
@@ -265,7 +278,7 @@ pub fn write_report(
     let doc = document(clean, spec, &report);
     let mut report = report;
     for (name, body) in [
-        ("index.html", doc.to_html(out)?),
+        ("index.html", doc.to_html()),
         ("README.md", doc.to_markdown()),
     ] {
         let p = out.join(name);
@@ -434,6 +447,17 @@ fn document(clean: &Mesh, spec: &ReportSpec, r: &Report) -> Doc {
         })
         .collect();
     d.table(head, rows);
+    d.p(&table_reading(t));
+    if t.rows
+        .iter()
+        .flat_map(|r| &r.cells)
+        .all(|c| c.mean.dvol_pct.is_none())
+    {
+        d.p(
+            "`dvol_pct` shows – because the clean mesh is not closed: a volume change is only \
+             defined for closed meshes.",
+        );
+    }
     for (li, &level) in t.levels.iter().enumerate() {
         d.h(3, &format!("All metrics at {} noise", pct(level)));
         let head = [
@@ -507,8 +531,10 @@ fn pairs_section(d: &mut Doc, p: &PairsOutcome) {
     d.p(&format!(
         "Published clean/noisy pairs with the same connectivity (`{}`). Each cell: `ang_deg` \
          (mean face-normal angle, degrees) / surface error `surf_std` (% of the clean mesh's L). \
-         The last column holds the numbers the GCN-Denoiser paper publishes for its two pairs \
-         (a learned method, for scale).",
+         The last column holds the numbers the GCN-Denoiser paper (Shen et al. 2022, a learned \
+         method) publishes for its two pairs, for scale: its angle is the same measure as \
+         `ang_deg`, but its surface figure is that paper's own vertex-distance measure and scale, \
+         not % of L, so only the angles compare directly.",
         p.dir.display()
     ));
     if !p.results.is_empty() {
@@ -535,6 +561,7 @@ fn pairs_section(d: &mut Doc, p: &PairsOutcome) {
             })
             .collect();
         d.table(head, rows);
+        d.p(&pairs_reading(p));
     }
     for s in &p.skipped {
         d.p(&format!("Note: {s}."));
@@ -566,6 +593,154 @@ fn spectrum_section(d: &mut Doc, s: &FrequencyResponse) {
     }
     d.images(imgs);
     d.p("Curves: `spectrum.csv`; summary: `spectrum.md`.");
+}
+
+/// The mean of one metric of a row at level index `li`.
+fn mean_of(row: &TableRow, li: usize, f: fn(&Summary) -> Option<f64>) -> Option<f64> {
+    f(&row.cells.get(li)?.mean)
+}
+
+/// What the Table I numbers show, in words: per level the best method for `surf_std` and
+/// `ang_deg`, then the rows that do worse than the noisy input on `std_xyz` (tangential drift)
+/// or `ang_deg`.
+fn table_reading(t: &Table) -> String {
+    let Some(noisy) = t.row(NOISY) else {
+        return String::new();
+    };
+    let methods: Vec<&TableRow> = t.rows.iter().filter(|r| r.method != NOISY).collect();
+    let best = |li: usize, f: fn(&Summary) -> Option<f64>| {
+        methods
+            .iter()
+            .filter_map(|r| Some((label(&r.method), mean_of(r, li, f)?)))
+            .min_by(|a, b| a.1.total_cmp(&b.1))
+    };
+    let mut parts = Vec::new();
+    for (li, &level) in t.levels.iter().enumerate() {
+        let mut p = format!("At {} noise", pct(level));
+        if let Some((name, v)) = best(li, |m| m.surf_std) {
+            let _ = write!(p, " the lowest `surf_std` is {name}'s ({v:.2} % of L");
+            if let Some(n) = mean_of(noisy, li, |m| m.surf_std) {
+                let _ = write!(p, ", {:.0} % of the input's", 100.0 * v / n);
+            }
+            p.push(')');
+        }
+        if let Some((name, v)) = best(li, |m| m.ang_deg) {
+            let _ = write!(p, " and the lowest `ang_deg` {name}'s ({v:.2}°)");
+        }
+        parts.push(format!("{p}."));
+    }
+    for r in &methods {
+        for (f, what) in [
+            (
+                (|m: &Summary| m.std_xyz) as fn(&Summary) -> Option<f64>,
+                "`std_xyz` is above the noisy input's (vertices slide along the surface: \
+                 tangential drift, which `surf_std` does not see)",
+            ),
+            (
+                |m: &Summary| m.ang_deg,
+                "`ang_deg` is above the noisy input's (face normals made worse)",
+            ),
+        ] {
+            let levels: Vec<String> = t
+                .levels
+                .iter()
+                .enumerate()
+                .filter(|&(li, _)| {
+                    matches!((mean_of(r, li, f), mean_of(noisy, li, f)), (Some(a), Some(b)) if a > b)
+                })
+                .map(|(_, &l)| pct(l))
+                .collect();
+            if !levels.is_empty() {
+                parts.push(format!(
+                    "{}'s {what} at {}.",
+                    label(&r.method),
+                    levels.join(", ")
+                ));
+            }
+        }
+    }
+    parts.join(" ")
+}
+
+/// What the pair results show, in words: how often each method is best, where one does worse
+/// than its input, and our best angle next to the published one.
+fn pairs_reading(p: &PairsOutcome) -> String {
+    let Some(first) = p.results.first() else {
+        return String::new();
+    };
+    // Every result has the noisy row first, then the methods in the same order.
+    let names: Vec<&str> = first.rows[1..].iter().map(|r| r.method.as_str()).collect();
+    let (mut ang_best, mut surf_best, mut ang_worse) = (
+        vec![0; names.len()],
+        vec![0; names.len()],
+        vec![0; names.len()],
+    );
+    let mut published = Vec::new();
+    for res in &p.results {
+        let Some((noisy, rows)) = res.rows.split_first() else {
+            continue;
+        };
+        let best = |f: fn(&Metrics) -> Option<f64>| {
+            rows.iter()
+                .enumerate()
+                .filter_map(|(k, r)| Some((k, f(&r.metrics)?)))
+                .min_by(|a, b| a.1.total_cmp(&b.1))
+        };
+        if let Some((k, _)) = best(|m| m.surf_std) {
+            surf_best[k] += 1;
+        }
+        let ang = best(|m| m.ang_deg);
+        if let Some((k, v)) = ang {
+            ang_best[k] += 1;
+            if let Some(g) = &res.pair.published {
+                published.push(format!(
+                    "On {} our best angle is {}'s {v:.2}° against GCN-Denoiser's {:.2}° (input: \
+                     {}°).",
+                    res.pair.name,
+                    label(&rows[k].method),
+                    g.ang_deg,
+                    num(noisy.metrics.ang_deg, 2)
+                ));
+            }
+        }
+        for (k, r) in rows.iter().enumerate() {
+            if let (Some(x), Some(y)) = (r.metrics.ang_deg, noisy.metrics.ang_deg) {
+                ang_worse[k] += usize::from(x > y);
+            }
+        }
+    }
+    let total = p.results.len();
+    let mut claims = Vec::new();
+    for (k, name) in names.iter().enumerate() {
+        if ang_best[k] + surf_best[k] > 0 {
+            claims.push(format!(
+                "{} has the lowest `ang_deg` on {} and the lowest surface error on {} of the \
+                 {total} pairs",
+                label(name),
+                ang_best[k],
+                surf_best[k]
+            ));
+        }
+    }
+    for (k, name) in names.iter().enumerate() {
+        if ang_worse[k] > 0 {
+            claims.push(format!(
+                "{}'s face normals are worse than the noisy input's on {} of {total}",
+                label(name),
+                ang_worse[k]
+            ));
+        }
+    }
+    let mut out = if claims.is_empty() {
+        String::new()
+    } else {
+        format!("{}.", claims.join("; "))
+    };
+    for p in published {
+        out.push(' ');
+        out.push_str(&p);
+    }
+    out.trim_start().to_string()
 }
 
 /// A document that prints as HTML or Markdown.
@@ -662,12 +837,8 @@ impl Doc {
         s
     }
 
-    /// The HTML page; figures are read from `dir` and embedded.
-    fn to_html(&self, dir: &Path) -> Result<String, EvalError> {
-        let read = |f: &str| -> Result<Vec<u8>, EvalError> {
-            let p = dir.join(f);
-            std::fs::read(&p).map_err(|e| EvalError::Io(crate::io::IoError::io(&p, e)))
-        };
+    /// The HTML page; it shows the figures of its folder by relative links.
+    fn to_html(&self) -> String {
         let mut s =
             String::from("<!DOCTYPE html>\n<html lang=\"en\">\n<head>\n<meta charset=\"utf-8\">\n");
         let title = self
@@ -715,21 +886,20 @@ impl Doc {
                     s.push_str("</tbody>\n</table>\n");
                 }
                 Block::Svg(file, alt) => {
-                    let svg = String::from_utf8_lossy(&read(file)?).into_owned();
                     let _ = writeln!(
                         s,
-                        "<figure class=\"chart\" title=\"{}\">\n{}\n</figure>",
-                        escape(alt),
-                        svg.trim()
+                        "<figure class=\"chart\"><img src=\"{}\" alt=\"{}\"></figure>",
+                        escape(file),
+                        escape(alt)
                     );
                 }
                 Block::Images(v) => {
                     s.push_str("<div class=\"images\">\n");
                     for (file, caption) in v {
-                        let data = base64(&read(file)?);
                         let _ = writeln!(
                             s,
-                            "<figure><img src=\"data:image/png;base64,{data}\" alt=\"{c}\"><figcaption>{c}</figcaption></figure>",
+                            "<figure><img src=\"{}\" alt=\"{c}\"><figcaption>{c}</figcaption></figure>",
+                            escape(file),
                             c = escape(caption)
                         );
                     }
@@ -738,7 +908,7 @@ impl Doc {
             }
         }
         s.push_str("</body>\n</html>\n");
-        Ok(s)
+        s
     }
 }
 
@@ -755,7 +925,7 @@ code { font-size: 0.95em; }
 .images img { width: 210px; border: 1px solid #ddd; }
 figcaption { font-size: 0.85em; }
 figure.chart { margin: 1em 0; }
-figure.chart svg { max-width: 100%; height: auto; }
+figure.chart img { max-width: 100%; height: auto; }
 </style>
 ";
 
@@ -793,43 +963,10 @@ fn inline(s: &str) -> String {
     o
 }
 
-/// Standard base64 with padding.
-fn base64(bytes: &[u8]) -> String {
-    const A: &[u8; 64] = b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
-    let mut o = String::with_capacity(bytes.len().div_ceil(3) * 4);
-    for c in bytes.chunks(3) {
-        let b = [c[0], *c.get(1).unwrap_or(&0), *c.get(2).unwrap_or(&0)];
-        let n = u32::from(b[0]) << 16 | u32::from(b[1]) << 8 | u32::from(b[2]);
-        for k in 0..4 {
-            if k <= c.len() {
-                o.push(A[(n >> (18 - 6 * k) & 63) as usize] as char);
-            } else {
-                o.push('=');
-            }
-        }
-    }
-    o
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::eval::synth::Shape;
-
-    #[test]
-    fn base64_matches_the_standard_vectors() {
-        for (i, o) in [
-            ("", ""),
-            ("f", "Zg=="),
-            ("fo", "Zm8="),
-            ("foo", "Zm9v"),
-            ("foob", "Zm9vYg=="),
-            ("fooba", "Zm9vYmE="),
-            ("foobar", "Zm9vYmFy"),
-        ] {
-            assert_eq!(base64(i.as_bytes()), o);
-        }
-    }
 
     #[test]
     fn inline_marks_become_html() {
@@ -839,20 +976,75 @@ mod tests {
         );
     }
 
+    /// The numeric cells of the Markdown table whose header line starts with `head`.
+    fn table_numbers(md: &str, head: &str) -> Vec<(String, Vec<f64>)> {
+        let mut lines = md.lines().skip_while(|l| !l.starts_with(head));
+        assert!(lines.next().is_some(), "no table `{head}`");
+        lines
+            .skip(1)
+            .take_while(|l| l.starts_with('|'))
+            .map(|l| {
+                let cells: Vec<&str> = l.trim_matches('|').split('|').map(str::trim).collect();
+                let nums = cells[1..]
+                    .iter()
+                    .map(|c| c.parse::<f64>().unwrap_or_else(|_| panic!("`{c}` in {l}")))
+                    .collect();
+                (cells[0].to_string(), nums)
+            })
+            .collect()
+    }
+
     #[test]
     fn small_report_has_every_section() {
         let m = Shape::Sphere.mesh(2).unwrap();
         let dir = tempfile::tempdir().unwrap();
+        // One generated pair, with made-up published numbers.
+        let pairs = dir.path().join("pairs");
+        std::fs::create_dir(&pairs).unwrap();
+        let noisy = super::super::noise::add_noise(
+            &m.positions,
+            Some(&m.faces),
+            &NoiseSpec {
+                level: 0.3,
+                ..NoiseSpec::default()
+            },
+        )
+        .unwrap();
+        m.clone()
+            .into_cloud()
+            .write(&pairs.join("c.ply"), None)
+            .unwrap();
+        crate::io::Cloud::generated(
+            noisy.positions,
+            Some(m.faces.clone()),
+            crate::points::ScalarType::F64,
+        )
+        .write(&pairs.join("n.ply"), None)
+        .unwrap();
+        let mut pair = Pair {
+            name: "sphere_pair".into(),
+            clean: "c.ply".into(),
+            noisy: "n.ply".into(),
+            published: None,
+        };
+        pair.published = Some(super::super::pairs::Published {
+            source: "test".into(),
+            ang_deg: 1.25,
+            surf_std: 2.5,
+        });
+        let out = dir.path().join("report");
         let spec = ReportSpec {
             title: "sphere".into(),
             command: Some("qemd report sphere.ply".into()),
+            seeds: vec![0, 1],
             levels: vec![0.2, 0.4],
             render: RenderOptions {
                 width: 120,
                 height: 120,
                 ..RenderOptions::default()
             },
-            pairs_dir: Some(dir.path().join("no-pairs-here")),
+            pairs_dir: Some(pairs),
+            pairs: vec![pair],
             spectrum: Some(SpectrumSpec {
                 cells: 16,
                 ..SpectrumSpec::default()
@@ -860,34 +1052,96 @@ mod tests {
             ..ReportSpec::default()
         };
         let mut lines = 0;
-        let r = write_report(&m, &spec, dir.path(), &mut |_| lines += 1).unwrap();
+        let r = write_report(&m, &spec, &out, &mut |_| lines += 1).unwrap();
         assert!(lines > 3);
         assert_eq!(r.table.rows.len(), 4);
         assert_eq!(r.renderings.len(), 5);
         for f in &r.files {
             assert!(f.is_file(), "{}", f.display());
         }
-        let html = std::fs::read_to_string(dir.path().join("index.html")).unwrap();
+        for name in ["clean", "noisy", "faithful", "bilateral", "default"] {
+            for file in [format!("render_{name}.png"), format!("patch_{name}.png")] {
+                let bytes = std::fs::read(out.join(&file)).unwrap();
+                assert!(bytes.starts_with(b"\x89PNG"), "{file}");
+            }
+        }
+        for file in ["surf_std.svg", "ang_deg.svg", "spectrum.svg"] {
+            let svg = std::fs::read_to_string(out.join(file)).unwrap();
+            assert!(
+                svg.starts_with("<svg") && svg.contains("qemd default"),
+                "{file}"
+            );
+        }
+
+        let md = std::fs::read_to_string(out.join("README.md")).unwrap();
+        let head = table_numbers(&md, "| method | 20 % | 40 % |");
+        let names: Vec<&str> = head.iter().map(|(n, _)| n.as_str()).collect();
+        assert_eq!(
+            names,
+            [
+                "noisy input",
+                "faithful (paper, Algorithm 1)",
+                "bilateral (Fleishman 2003)",
+                "qemd default"
+            ]
+        );
+        // The input's residual is the noise itself; every method lowers it.
+        let noisy = &head[0].1;
+        assert!(
+            (noisy[0] - 20.0).abs() < 5.0 && (noisy[1] - 40.0).abs() < 10.0,
+            "{noisy:?}"
+        );
+        for (name, v) in &head[1..] {
+            assert!(v[0] < noisy[0] && v[1] < noisy[1], "{name}: {v:?}");
+        }
+        for (name, v) in table_numbers(&md, "| method | surf_std | surf_rms |") {
+            assert_eq!(v.len(), 5, "{name}");
+            assert!(v.iter().all(|x| x.is_finite()), "{name}");
+        }
+        assert!(md.contains("At 20 % noise the lowest `surf_std` is"));
+        assert!(md.contains("![surf_std against noise level](surf_std.svg)"));
+        // The pair: noisy, three methods, the published column.
+        let pair_row = md
+            .lines()
+            .find(|l| l.starts_with("| sphere_pair |"))
+            .unwrap();
+        assert_eq!(pair_row.matches(" / ").count(), 5, "{pair_row}");
+        assert!(pair_row.ends_with("| 1.25 / 2.5 |"), "{pair_row}");
+        assert!(md.contains("against GCN-Denoiser's 1.25°"));
+        assert!(md.contains("half-amplitude λ") && md.contains("* **qemd default** "));
+
+        let html = std::fs::read_to_string(out.join("index.html")).unwrap();
         for needle in [
+            "<title>qemd quality report: sphere</title>",
             "noisy input",
-            "faithful (paper, Algorithm 1)",
-            "bilateral (Fleishman 2003)",
-            "qemd default",
-            "<svg",
-            "data:image/png;base64,",
-            "not a directory",
+            "<td>qemd default</td>",
+            "<img src=\"surf_std.svg\"",
+            "<img src=\"render_default.png\"",
+            "<img src=\"spectrum.svg\"",
             "Frequency response",
             "qemd report sphere.ply",
         ] {
             assert!(html.contains(needle), "{needle}");
         }
-        let md = std::fs::read_to_string(dir.path().join("README.md")).unwrap();
-        assert!(md.contains("![surf_std against noise level](surf_std.svg)"));
-        assert!(md.contains("| qemd default |"));
+
+        // A missing pairs folder is a note, not an error; a bad spec fails before writing.
+        let spec = ReportSpec {
+            pairs_dir: Some(dir.path().join("no-pairs-here")),
+            spectrum: None,
+            seeds: vec![0],
+            levels: vec![0.2],
+            ..spec
+        };
+        let again = dir.path().join("again");
+        write_report(&m, &spec, &again, &mut |_| {}).unwrap();
+        let md = std::fs::read_to_string(again.join("README.md")).unwrap();
+        assert!(md.contains("not a directory"));
         let bad = ReportSpec {
             seeds: vec![],
             ..spec
         };
-        assert!(write_report(&m, &bad, dir.path(), &mut |_| {}).is_err());
+        let never = dir.path().join("never");
+        assert!(write_report(&m, &bad, &never, &mut |_| {}).is_err());
+        assert!(!never.exists());
     }
 }

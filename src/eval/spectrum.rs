@@ -44,6 +44,7 @@ use super::metrics::{Metrics, Reference};
 use super::noise::{NoiseModel, NoiseSpec, add_noise};
 use super::plot::{Corner, LineChart, Series, colours};
 use super::render::{RenderOptions, View, render};
+use super::report::{label, method_colour};
 use super::table::TableMethod;
 use super::{EvalError, Mesh, check_faces};
 use crate::denoise::denoise;
@@ -761,17 +762,6 @@ pub fn frequency_response(
     })
 }
 
-/// The colour of a method in every chart: the four methods of the report by name.
-pub fn method_colour(name: &str) -> [u8; 3] {
-    match name {
-        "noisy" => colours::NOISY,
-        "faithful" => colours::FAITHFUL,
-        "bilateral" => colours::BILATERAL,
-        "default" => colours::DEFAULT,
-        _ => colours::OTHER,
-    }
-}
-
 /// A half-amplitude cut-off (cycles per L) as a wavelength.
 fn half(f: Option<f64>) -> String {
     f.map_or_else(|| "–".to_string(), |f| format!("{:.1} L", 1.0 / f))
@@ -857,8 +847,11 @@ impl FrequencyResponse {
             ..Series::new("clean (ideal gain)", line(&self.clean), colours::REFERENCE)
         });
         for m in &self.methods {
-            c.series
-                .push(Series::new(&m.name, line(&m.gain), method_colour(&m.name)));
+            c.series.push(Series::new(
+                label(&m.name),
+                line(&m.gain),
+                method_colour(&m.name),
+            ));
         }
         let lo = self
             .clean
@@ -962,7 +955,7 @@ impl FrequencyResponse {
         for m in &self.methods {
             let b = &m.bands;
             rows.push(vec![
-                m.name.clone(),
+                label(&m.name).to_string(),
                 fmt_opt(m.metrics.surf_std),
                 fmt_opt(m.metrics.ang_deg),
                 fmt_opt(b.shape),
@@ -989,12 +982,12 @@ impl FrequencyResponse {
             .methods
             .iter()
             .filter(|m| m.bands.peak_outside_shape > 1.05)
-            .map(|m| m.name.as_str())
+            .map(|m| label(&m.name))
             .collect();
         let best = self
             .methods
             .iter()
-            .filter_map(|m| Some((m.name.as_str(), m.bands.noise?)))
+            .filter_map(|m| Some((label(&m.name), m.bands.noise?)))
             .min_by(|a, b| a.1.total_cmp(&b.1));
         let mut s = String::from(
             "How to read it: a gain near 1 at low frequencies means the shape is kept; a gain far \
@@ -1078,7 +1071,7 @@ impl FrequencyResponse {
                 "and rolls off smoothly through the transition band (mean gain {t:.2}, no gain above 1)"
             ));
         }
-        format!("**{}** {}.", m.name, parts.join(", "))
+        format!("**{}** {}.", label(&m.name), parts.join(", "))
     }
 
     /// Writes `spectrum.svg` (the chart), `spectrum.csv`, `spectrum.md` (the summary) and, with
@@ -1388,7 +1381,7 @@ mod tests {
         let csv = r.to_csv();
         assert_eq!(csv.lines().count(), spec.max_ring() + 1);
         assert!(csv.starts_with("ring,frequency_per_L,wavelength_L,clean_gain,identity-ish_gain"));
-        assert!(r.summary().contains("| default |"));
+        assert!(r.summary().contains("| qemd default |"));
         assert!(r.chart().to_svg().unwrap().contains("clean (ideal gain)"));
     }
 }
