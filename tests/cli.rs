@@ -446,6 +446,7 @@ fn report_and_spectrum_write_their_files() {
     assert!(String::from_utf8_lossy(&o.stdout).contains("half-amplitude"));
     for f in [
         "spectrum.svg",
+        "spectrum_error.svg",
         "spectrum.csv",
         "spectrum.md",
         "patch_default.png",

@@ -21,6 +21,10 @@
 //!    transfer function as the ratio of ring RMS magnitudes. The same ratio for the clean surface,
 //!    `|F_clean| / |F_noisy|`, is the gain an ideal denoiser would have: ≈ 1 where the shape
 //!    dominates the spectrum, ≈ 0 where the noise does.
+//! 6. The **error left** per ring: the same ratio for the error fields, `|F(denoised − clean)| /
+//!    |F(noisy − clean)|`. A gain curve alone cannot tell restored shape from new artefacts (both
+//!    add energy); the error left can: below 1 the method removed error at that frequency, above
+//!    1 it added some.
 //!
 //! The paper plots the *difference* of magnitudes `|F_noisy| − |F_denoised|` (smoothed), which
 //! is what the operator removes; the CSV carries it too (`*_diff`, ring mean, in units of L), but
@@ -631,6 +635,10 @@ pub struct MethodResponse {
     pub diff: Vec<f64>,
     /// Band averages of the gain.
     pub bands: Bands,
+    /// The error left per ring: `|F(denoised − clean)| / |F(noisy − clean)|`.
+    pub error: Vec<f64>,
+    /// Band averages of the error left (bands of the clean gain, as for [`Self::bands`]).
+    pub error_bands: Bands,
     /// The denoised patch measured against the clean one.
     pub metrics: Metrics,
     /// The denoised positions.
@@ -676,6 +684,25 @@ struct Experiment {
     rings: std::ops::RangeInclusive<usize>,
     frequency: Vec<f64>,
     clean: Vec<f64>,
+    /// The clean heights, subtracted from a result's for its error field.
+    clean_grid: HeightGrid,
+    /// The spectrum of the noisy error field (no offset: a shift of the whole surface is an
+    /// error of the lowest rings, not something to take out).
+    noisy_error: RadialSpectrum,
+}
+
+/// `a − b` point by point (same grid).
+fn difference(a: &HeightGrid, b: &HeightGrid) -> HeightGrid {
+    HeightGrid {
+        grid: a.grid,
+        heights: a
+            .heights
+            .iter()
+            .zip(&b.heights)
+            .map(|(x, y)| x - y)
+            .collect(),
+        filled: a.filled,
+    }
 }
 
 impl Experiment {
@@ -693,10 +720,13 @@ impl Experiment {
             .clone()
             .map(|r| noisy_spectrum.frequency(r) * noisy.l)
             .collect();
-        let clean_spectrum =
-            radial_spectrum(&resample(&patch.positions, &patch.faces, &grid)?, offset)?;
+        let clean_grid = resample(&patch.positions, &patch.faces, &grid)?;
+        let clean_spectrum = radial_spectrum(&clean_grid, offset)?;
         let clean = gain(&noisy_spectrum, &clean_spectrum)[rings.clone()].to_vec();
+        let noisy_error = radial_spectrum(&difference(&noisy_grid, &clean_grid), 0.0)?;
         Ok(Experiment {
+            clean_grid,
+            noisy_error,
             l: noisy.l,
             noisy: noisy.positions,
             patch,
@@ -715,6 +745,8 @@ impl Experiment {
         let g = resample(&positions, &self.patch.faces, &self.grid)?;
         let s = radial_spectrum(&g, self.offset)?;
         let gains = gain(&self.noisy_spectrum, &s)[self.rings.clone()].to_vec();
+        let e = radial_spectrum(&difference(&g, &self.clean_grid), 0.0)?;
+        let error = gain(&self.noisy_error, &e)[self.rings.clone()].to_vec();
         let diff = self
             .rings
             .clone()
@@ -724,6 +756,8 @@ impl Experiment {
             name: name.to_string(),
             bands: Bands::of(&gains, &self.clean, &self.frequency),
             gain: gains,
+            error_bands: Bands::of(&error, &self.clean, &self.frequency),
+            error,
             diff,
             metrics: self
                 .reference
@@ -790,11 +824,12 @@ impl FrequencyResponse {
     }
 
     /// The curves as CSV: ring, frequency (cycles per L), wavelength (L), the clean surface's
-    /// gain, then `<method>_gain` and `<method>_diff` per method. Undefined values are empty.
+    /// gain, then `<method>_gain`, `<method>_diff` and `<method>_error` per method. Undefined
+    /// values are empty.
     pub fn to_csv(&self) -> String {
         let mut s = String::from("ring,frequency_per_L,wavelength_L,clean_gain");
         for m in &self.methods {
-            let _ = write!(s, ",{0}_gain,{0}_diff", m.name);
+            let _ = write!(s, ",{0}_gain,{0}_diff,{0}_error", m.name);
         }
         s.push('\n');
         let num = |v: f64| {
@@ -814,7 +849,13 @@ impl FrequencyResponse {
                 num(self.clean[k])
             );
             for m in &self.methods {
-                let _ = write!(s, ",{},{}", num(m.gain[k]), num(m.diff[k]));
+                let _ = write!(
+                    s,
+                    ",{},{},{}",
+                    num(m.gain[k]),
+                    num(m.diff[k]),
+                    num(m.error[k])
+                );
             }
             s.push('\n');
         }
@@ -873,6 +914,28 @@ impl FrequencyResponse {
         c
     }
 
+    /// The error-left chart (log y): per method, the error of the result over the noise, ring by
+    /// ring; 1 (grey) is the noisy input.
+    pub fn error_chart(&self) -> LineChart {
+        let mut c = LineChart::new(
+            "Error left per frequency (|F(denoised − clean)| / |F(noisy − clean)|)",
+            "radial frequency (cycles per L)",
+            "error left (1 = the input's noise)",
+        );
+        c.log_y = true;
+        c.legend = Corner::LowerRight;
+        c.h_lines.push(1.0);
+        for m in &self.methods {
+            let pts = self.frequency.iter().copied().zip(m.error.iter().copied());
+            c.series.push(Series::new(
+                label(&m.name),
+                pts.collect(),
+                method_colour(&m.name),
+            ));
+        }
+        c
+    }
+
     /// A short text saying what the curves show: [`FrequencyResponse::intro`], the band table,
     /// one sentence per method and [`FrequencyResponse::reading`], as Markdown.
     pub fn summary(&self) -> String {
@@ -926,6 +989,8 @@ impl FrequencyResponse {
             "gain, noise band",
             "half-amplitude λ",
             "max gain outside the shape band",
+            "error left, shape band",
+            "error left, transition",
         ]
         .map(String::from)
         .to_vec();
@@ -940,6 +1005,8 @@ impl FrequencyResponse {
                 fmt_opt(c.noise),
                 half(c.half),
                 "–".into(),
+                "0.00".into(),
+                "0.00".into(),
             ],
             vec![
                 "noisy".into(),
@@ -949,6 +1016,8 @@ impl FrequencyResponse {
                 "1.00".into(),
                 "1.00".into(),
                 "–".into(),
+                "1.00".into(),
+                "1.00".into(),
                 "1.00".into(),
             ],
         ];
@@ -971,6 +1040,8 @@ impl FrequencyResponse {
                 } else {
                     "–".into()
                 },
+                fmt_opt(m.error_bands.shape),
+                fmt_opt(m.error_bands.transition),
             ]);
         }
         (head, rows)
@@ -993,8 +1064,9 @@ impl FrequencyResponse {
             "How to read it: a gain near 1 at low frequencies means the shape is kept; a gain far \
              below 1 at high frequencies means the noise is removed; a gain above 1 means the \
              operator adds energy at that frequency, which is how sharpened features (and new \
-             artefacts) show. The paper reads its Fig. 12 as a band-pass with gains in the \
-             middle frequencies that would explain its feature enhancement.",
+             artefacts) show; the error-left chart tells the two apart. The paper reads its \
+             Fig. 12 as a band-pass with gains in the middle frequencies that would explain its \
+             feature enhancement.",
         );
         if boosting.is_empty() {
             s.push_str(" Here no method has a gain above 1.05 outside the shape band.");
@@ -1012,6 +1084,21 @@ impl FrequencyResponse {
                 " The strongest noise suppression is {name}'s ({:.0} % of the noise amplitude left \
                  in the noise band).",
                 g * 100.0
+            );
+        }
+        let least = |f: fn(&Bands) -> Option<f64>| {
+            self.methods
+                .iter()
+                .filter_map(|m| Some((label(&m.name), f(&m.error_bands)?)))
+                .min_by(|a, b| a.1.total_cmp(&b.1))
+        };
+        if let (Some((a, x)), Some((b, y))) = (least(|b| b.shape), least(|b| b.transition)) {
+            let _ = write!(
+                s,
+                " The least error where the shape dominates is {a}'s ({:.0} % of the input's), \
+                 in the transition band {b}'s ({:.0} %).",
+                x * 100.0,
+                y * 100.0
             );
         }
         s
@@ -1058,13 +1145,34 @@ impl FrequencyResponse {
                 }
             ));
         }
-        if b.peak_outside_shape > 1.05 {
+        let e = &m.error_bands;
+        if let (Some(a), Some(t)) = (e.shape, e.transition) {
             parts.push(format!(
-                "and boosts mid/high frequencies (gain up to {:.2} at wavelengths of {:.1} L): \
-                 the operator adds energy there, the feature sharpening the paper reads into its \
-                 Fig. 12 but also new high-frequency detail",
+                "leaves {:.0} % of the input's error where the shape dominates and {:.0} % in the \
+                 transition band",
+                a * 100.0,
+                t * 100.0
+            ));
+        }
+        if b.peak_outside_shape > 1.05 {
+            let at = self
+                .frequency
+                .iter()
+                .position(|&f| f == b.peak_outside_shape_frequency)
+                .and_then(|k| m.error.get(k).copied())
+                .unwrap_or(f64::NAN);
+            let verdict = if at < 1.0 {
+                "so the energy it adds there moves the surface towards the clean one (restored \
+                 shape, the feature sharpening the paper reads into its Fig. 12)"
+            } else {
+                "so the energy it adds there is new error, not restored shape"
+            };
+            parts.push(format!(
+                "and boosts mid frequencies (gain up to {:.2} at a wavelength of {:.1} L), where \
+                 its error is {:.0} % of the input's: {verdict}",
                 b.peak_outside_shape,
-                1.0 / b.peak_outside_shape_frequency
+                1.0 / b.peak_outside_shape_frequency,
+                at * 100.0
             ));
         } else if let Some(t) = b.transition {
             parts.push(format!(
@@ -1074,9 +1182,9 @@ impl FrequencyResponse {
         format!("**{}** {}.", label(&m.name), parts.join(", "))
     }
 
-    /// Writes `spectrum.svg` (the chart), `spectrum.csv`, `spectrum.md` (the summary) and, with
-    /// `render`, `patch_clean.png`, `patch_noisy.png` and `patch_<method>.png` into `dir`
-    /// (created if missing); returns the paths written.
+    /// Writes `spectrum.svg` and `spectrum_error.svg` (the charts), `spectrum.csv`, `spectrum.md`
+    /// (the summary) and, with `render`, `patch_clean.png`, `patch_noisy.png` and
+    /// `patch_<method>.png` into `dir` (created if missing); returns the paths written.
     ///
     /// # Errors
     /// Unwritable directory or files, chart or rendering failures.
@@ -1094,6 +1202,7 @@ impl FrequencyResponse {
             Ok(())
         };
         text("spectrum.svg", &self.chart().to_svg()?)?;
+        text("spectrum_error.svg", &self.error_chart().to_svg()?)?;
         text("spectrum.csv", &self.to_csv())?;
         text("spectrum.md", &self.summary())?;
         if let Some(o) = render_options {
@@ -1212,12 +1321,18 @@ mod tests {
             assert!((g - 1.0).abs() < 1e-12, "ring {}: {g}", r + 1);
         }
         assert!(id.diff.iter().all(|d| d.abs() < 1e-12), "{:?}", id.diff);
+        assert!(
+            id.error.iter().all(|x| (x - 1.0).abs() < 1e-12),
+            "{:?}",
+            id.error
+        );
         assert_eq!(id.bands.half, None);
         assert!((id.bands.peak - 1.0).abs() < 1e-12);
         assert_eq!(id.filled, 0);
         // Handing in the clean patch reproduces the reference curve: gain = |F_clean| / |F_noisy|.
         let clean = e.measure("clean", e.patch.positions.clone()).unwrap();
         assert_eq!(clean.gain, e.clean);
+        assert!(clean.error.iter().all(|&x| x == 0.0), "{:?}", clean.error);
         assert_eq!(clean.metrics.surf_std, Some(0.0));
         // And the clean curve starts near 1 (the shape) and ends well below (the noise).
         assert!(
