@@ -1162,10 +1162,10 @@ impl FrequencyResponse {
                 .and_then(|k| m.error.get(k).copied())
                 .unwrap_or(f64::NAN);
             let verdict = if at < 1.0 {
-                "so the energy it adds there moves the surface towards the clean one (restored \
+                "the energy it adds there moves the surface towards the clean one (restored \
                  shape, the feature sharpening the paper reads into its Fig. 12)"
             } else {
-                "so the energy it adds there is new error, not restored shape"
+                "the energy it adds there is new error, not restored shape"
             };
             parts.push(format!(
                 "and boosts mid frequencies (gain up to {:.2} at a wavelength of {:.1} L), where \
