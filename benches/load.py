@@ -14,6 +14,7 @@ Usage (from the repository root, after `cargo build --release`):
 
     python3 benches/load.py [--bin target/release/qemd] [--requests 200] [--concurrency 8]
                             [--sync-points 120000] [--job-points 2000000] [--jobs 2]
+                            [--query paper=true]
 """
 
 import argparse
@@ -86,6 +87,8 @@ def main():
     ap.add_argument("--job-points", type=int, default=2_000_000)
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--baseline", type=int, default=20)
+    ap.add_argument("--query", default="",
+                    help="query string of the synchronous requests, e.g. paper=true")
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args()
 
@@ -110,10 +113,11 @@ def main():
     body = open(scan, "rb").read()
     octet = {"content-type": "application/octet-stream"}
     errors = []
+    sync_path = "/v1/denoise" + (f"?{a.query}" if a.query else "")
 
     def sync_once(_):
         t0 = time.perf_counter()
-        status, headers, data = client.request("POST", "/v1/denoise", body, octet)
+        status, headers, data = client.request("POST", sync_path, body, octet)
         dt = time.perf_counter() - t0
         if status != 200 or len(data) != len(body):
             errors.append((status, data[:200]))
@@ -160,6 +164,7 @@ def main():
         "date": time.strftime("%Y-%m-%d"),
         "cpus": os.cpu_count(),
         "sync_points": a.sync_points,
+        "sync_query": a.query,
         "body_bytes": len(body),
         "baseline_requests": len(base),
         "baseline_p50_ms": round(percentile([b[0] * 1e3 for b in base], 0.5), 1),

@@ -619,8 +619,13 @@ fn bad_input_gets_problem_details() {
     );
     field(json!({"input": kid, "params": {"eps": 2.0}}), "params.eps");
     field(
-        json!({"input": kid, "params": {"iterations": 0}}),
+        json!({"input": kid, "params": {"iterations": 1001}}),
         "params.iterations",
+    );
+    field(json!({"input": kid, "params": {"mu": -1.0}}), "params.mu");
+    field(
+        json!({"input": kid, "params": {"sigma_r": 3.0}}),
+        "params.sigma_r",
     );
     field(
         json!({"input": kid, "params": {"outlier_alpha": -1.0}}),

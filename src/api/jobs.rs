@@ -9,8 +9,9 @@
 //! ```
 //!
 //! Only `input` is required. `params` takes the CLI's names ([`crate::denoise::Params`]:
-//! method, rings, knn, normals, solve, eps, lambda, iterations) plus `outliers` and
-//! `outlier_alpha` (also accepted at the top level, like `method`). As on the command line,
+//! method, rings, knn, normals, planes, filter, updates, solve, eps, lambda, mu, sigma_r,
+//! volume, iterations, and `paper` for `--paper`) plus `outliers` and `outlier_alpha` (also
+//! accepted at the top level, like `method`). As on the command line,
 //! `bilateral` defaults to three iterations. Any bad field answers 422 naming it
 //! (`params.knn`, `output_format`, `input`, …).
 
@@ -104,8 +105,21 @@ pub(crate) fn params_from(
     if outlier_alpha.is_some() && inner_alpha.is_some() {
         return Err(twice("outlier_alpha"));
     }
+    // `paper: true` is the CLI's `--paper`: the paper's Algorithm 1 as the base, the other
+    // fields still override it.
+    let paper: bool = match map.remove("paper") {
+        Some(v) => from_value(v, &dotted("paper"))?,
+        None => false,
+    };
     let has_iterations = map.contains_key("iterations");
     let has_method = map.contains_key("method");
+    if paper {
+        let Ok(Value::Object(mut base)) = serde_json::to_value(Params::paper()) else {
+            return Err(ApiError::invalid(dotted("paper"), "cannot be applied"));
+        };
+        base.extend(map);
+        map = base;
+    }
     let mut params: Params = from_value(Value::Object(map), prefix)?;
     if let Some(m) = method {
         if has_method && params.method != m {

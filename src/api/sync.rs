@@ -23,14 +23,21 @@ use crate::io::sniff::{SNIFF_LEN, sniff};
 use crate::jobs::{SyncRequest, canonical_format};
 
 /// Parameters whose values are numbers (query strings carry text).
-const NUMERIC: [&str; 6] = [
+const NUMERIC: [&str; 10] = [
     "rings",
     "knn",
+    "filter",
+    "updates",
     "eps",
     "lambda",
+    "mu",
+    "sigma_r",
     "iterations",
     "outlier_alpha",
 ];
+
+/// Parameters whose values are booleans (`true` or `false`).
+const BOOLEAN: [&str; 2] = ["paper", "volume"];
 
 /// A query string split: input format, output format, denoising parameters (JSON object).
 type Split = (Option<String>, Option<String>, Map<String, Value>);
@@ -51,6 +58,17 @@ fn split_query(query: Option<&str>) -> Result<Split, ApiError> {
                     return Err(ApiError::invalid(
                         k.as_str(),
                         format!("`{v}` is not a number"),
+                    ));
+                }
+            }
+        } else if BOOLEAN.contains(&k.as_str()) {
+            match v.as_str() {
+                "true" => Value::Bool(true),
+                "false" => Value::Bool(false),
+                _ => {
+                    return Err(ApiError::invalid(
+                        k.as_str(),
+                        format!("`{v}` is not `true` or `false`"),
                     ));
                 }
             }

@@ -248,7 +248,8 @@ pub(super) fn param_error(e: DenoiseError) -> JobsError {
             field: match name {
                 "outlier-alpha" => "outlier_alpha".into(),
                 "outliers" => "outliers".into(),
-                n => format!("params.{n}"),
+                // CLI flags are kebab-case, JSON fields snake_case.
+                n => format!("params.{}", n.replace('-', "_")),
             },
             detail,
         },
