@@ -118,6 +118,9 @@ pub enum EvalError {
     /// Drawing a chart failed.
     #[error("cannot draw the chart: {0}")]
     Plot(String),
+    /// Serialising results to JSON failed.
+    #[error("cannot write the results as JSON: {0}")]
+    Json(#[from] serde_json::Error),
 }
 
 /// A triangle (or polygon) mesh in memory.

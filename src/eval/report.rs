@@ -224,7 +224,7 @@ pub fn write_report(
             }
         },
     )?;
-    let json = serde_json::to_string_pretty(&table).map_err(|e| EvalError::Plot(e.to_string()))?;
+    let json = serde_json::to_string_pretty(&table)?;
     let p = out.join("table.json");
     write_file(&p, json.as_bytes())?;
     files.push(p);
@@ -286,7 +286,7 @@ pub fn write_report(
         report.files.push(p);
     }
     if let Some(p) = &report.pairs {
-        let p = serde_json::to_string_pretty(p).map_err(|e| EvalError::Plot(e.to_string()))?;
+        let p = serde_json::to_string_pretty(p)?;
         let path = out.join("pairs.json");
         write_file(&path, p.as_bytes())?;
         report.files.push(path);
@@ -303,7 +303,7 @@ fn patch_render_options(o: &RenderOptions) -> RenderOptions {
 }
 
 /// A metric against the noise level (%), one line per row.
-fn level_chart(table: &Table, metric: &str, f: fn(&Metrics) -> Option<f64>) -> LineChart {
+fn level_chart(table: &Table, metric: &str, f: fn(&Summary) -> Option<f64>) -> LineChart {
     let unit = if metric == "ang_deg" {
         "degrees"
     } else {
@@ -323,12 +323,7 @@ fn level_chart(table: &Table, metric: &str, f: fn(&Metrics) -> Option<f64>) -> L
         let pts = row
             .cells
             .iter()
-            .filter_map(|c| {
-                // The mean of the runs' metric, when every run has it.
-                let v: Option<Vec<f64>> = c.runs.iter().map(f).collect();
-                let v = v.filter(|v| !v.is_empty())?;
-                Some((c.level * 100.0, v.iter().sum::<f64>() / v.len() as f64))
-            })
+            .filter_map(|c| Some((c.level * 100.0, f(&c.mean)?)))
             .collect();
         c.series.push(Series {
             markers: true,
