@@ -36,6 +36,11 @@ pub enum Command {
     Render(RenderArgs),
     /// Generate a noisy scan, denoise it, print the metrics and write files and renderings.
     Demo(DemoArgs),
+    /// Write the quality report (Table I for four methods, charts, renderings, benchmark pairs,
+    /// frequency response) as HTML and Markdown.
+    Report(ReportArgs),
+    /// The paper's frequency-response analysis on a noisy height-field patch: chart, CSV, summary.
+    Spectrum(SpectrumArgs),
     /// Run the HTTP job service (uploads, asynchronous jobs, synchronous denoise).
     Serve(ServeArgs),
 }
@@ -357,6 +362,54 @@ pub struct DemoArgs {
     /// Folder for the files (created if missing).
     #[arg(long, default_value = "qemd-demo")]
     pub out: PathBuf,
+}
+
+/// Flags of `qemd report`.
+#[derive(Debug, Args)]
+pub struct ReportArgs {
+    /// The clean mesh.
+    pub clean: PathBuf,
+    /// Folder for the report (created if missing).
+    #[arg(long, default_value = "qemd-report")]
+    pub out: PathBuf,
+    /// Comma-separated noise seeds; the tables average over them.
+    #[arg(long, default_value = "0,1,2,3,4", value_delimiter = ',')]
+    pub seeds: Vec<u64>,
+    /// Comma-separated noise levels (σ as a fraction of L) of the tables and charts.
+    #[arg(long, default_value = "0.2,0.4,0.8", value_delimiter = ',')]
+    pub levels: Vec<f64>,
+    /// Folder of the real benchmark pairs (skipped with a note when absent).
+    #[arg(long, default_value = crate::eval::pairs::DEFAULT_DIR)]
+    pub pairs: PathBuf,
+    /// Leave the benchmark pairs out.
+    #[arg(long, conflicts_with = "pairs")]
+    pub no_pairs: bool,
+    /// View of the renderings: front, side, top, iso, or "AZIMUTH,ELEVATION" in degrees.
+    #[arg(long, default_value = "iso")]
+    pub view: String,
+    /// Side of the rendered images in pixels.
+    #[arg(long, default_value_t = 420)]
+    pub size: u32,
+    /// Cells per side of the frequency-response patch.
+    #[arg(long, default_value_t = 96)]
+    pub patch: usize,
+}
+
+/// Flags of `qemd spectrum`.
+#[derive(Debug, Args)]
+pub struct SpectrumArgs {
+    /// Folder for the chart, CSV, summary and renderings (created if missing).
+    #[arg(long, default_value = "qemd-spectrum")]
+    pub out: PathBuf,
+    /// Noise σ along the normal as a fraction of L.
+    #[arg(long, default_value_t = 0.4)]
+    pub noise: f64,
+    /// RNG seed (noise and vertex jitter).
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Cells per side of the patch.
+    #[arg(long, default_value_t = 96)]
+    pub patch: usize,
 }
 
 #[cfg(test)]

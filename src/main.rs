@@ -13,14 +13,17 @@ use clap::Parser;
 use qem_denoise::api::ApiSettings;
 use qem_denoise::api::server::{ServeOptions, Server, shutdown_signal};
 use qem_denoise::cli::{
-    Cli, Command, DemoArgs, DenoiseArgs, EvalArgs, NoiseArgs, OutliersArg, RenderArgs, ServeArgs,
-    SynthArgs, TableArgs,
+    Cli, Command, DemoArgs, DenoiseArgs, EvalArgs, NoiseArgs, OutliersArg, RenderArgs, ReportArgs,
+    ServeArgs, SpectrumArgs, SynthArgs, TableArgs,
 };
 use qem_denoise::config::{Config, LogFormat};
 use qem_denoise::denoise::{self, Params};
+use qem_denoise::eval::Mesh;
 use qem_denoise::eval::metrics::{Metrics, Reference};
 use qem_denoise::eval::noise::{NoiseModel, NoiseSpec, add_noise};
 use qem_denoise::eval::render::{RenderOptions, View, render};
+use qem_denoise::eval::report::{ReportSpec, report_methods, write_report};
+use qem_denoise::eval::spectrum::{SpectrumSpec, frequency_response, patch_view};
 use qem_denoise::eval::synth::Shape;
 use qem_denoise::eval::table::{TableSpec, run_table_with_progress};
 use qem_denoise::io::{self, BATCH, Cloud, Format, SourceInfo};
@@ -49,6 +52,8 @@ fn run(cli: Cli) -> Result<()> {
         Command::Table(a) => table(a),
         Command::Render(a) => render_cmd(a),
         Command::Demo(a) => demo(a),
+        Command::Report(a) => report(a),
+        Command::Spectrum(a) => spectrum(a),
         Command::Serve(a) => serve(a),
     }
 }
@@ -389,5 +394,88 @@ fn demo(a: DemoArgs) -> Result<()> {
         "wrote noisy.ply, denoised.ply, noisy.png and denoised.png to {}",
         a.out.display()
     );
+    Ok(())
+}
+
+/// The command line as typed, for the report's "regenerate with" line.
+fn command_line() -> String {
+    let args: Vec<String> = std::env::args()
+        .skip(1)
+        .map(|a| {
+            if !a.is_empty()
+                && a.chars()
+                    .all(|c| c.is_ascii_alphanumeric() || "-_./,=:+".contains(c))
+            {
+                a
+            } else {
+                format!("'{}'", a.replace('\'', "'\\''"))
+            }
+        })
+        .collect();
+    format!("cargo run --release -- {}", args.join(" "))
+}
+
+fn report(a: ReportArgs) -> Result<()> {
+    let cloud = Cloud::read(&a.clean, None)?;
+    let faces = cloud
+        .faces()
+        .filter(|f| !f.is_empty())
+        .cloned()
+        .with_context(|| {
+            format!(
+                "{}: the report needs a mesh (no faces found)",
+                a.clean.display()
+            )
+        })?;
+    let mesh = Mesh {
+        positions: cloud.positions,
+        faces,
+    };
+    let defaults = ReportSpec::default();
+    let spec = ReportSpec {
+        title: a.clean.file_name().map_or_else(
+            || a.clean.display().to_string(),
+            |n| n.to_string_lossy().into_owned(),
+        ),
+        command: Some(command_line()),
+        seeds: a.seeds.clone(),
+        levels: a.levels.clone(),
+        render: render_options(&a.view, &format!("{0}x{0}", a.size))?,
+        pairs_dir: (!a.no_pairs).then(|| a.pairs.clone()),
+        spectrum: Some(SpectrumSpec {
+            cells: a.patch,
+            ..SpectrumSpec::default()
+        }),
+        ..defaults
+    };
+    let report = write_report(&mesh, &spec, &a.out, &mut |s| eprintln!("qemd: {s}"))?;
+    print!("{}", report.table.to_markdown());
+    eprintln!(
+        "qemd: wrote {} files; open {}",
+        report.files.len(),
+        a.out.join("index.html").display()
+    );
+    Ok(())
+}
+
+fn spectrum(a: SpectrumArgs) -> Result<()> {
+    let spec = SpectrumSpec {
+        cells: a.patch,
+        noise: NoiseSpec {
+            model: NoiseModel::Normal,
+            level: a.noise,
+            seed: a.seed,
+        },
+    };
+    let r = frequency_response(&spec, &report_methods())?;
+    let options = RenderOptions {
+        width: 420,
+        height: 420,
+        view: patch_view(),
+        ..RenderOptions::default()
+    };
+    let files = r.write(&a.out, Some(&options))?;
+    print!("{}", r.summary());
+    eprintln!("qemd: wrote {} files to {}", files.len(), a.out.display());
     Ok(())
 }

@@ -391,3 +391,85 @@ fn demo_writes_its_files() {
         assert!(dir.path().join(f).exists(), "{f}");
     }
 }
+
+#[test]
+fn report_and_spectrum_write_their_files() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = |n: &str| dir.path().join(n);
+    let o = qemd(&[
+        "synth",
+        "sphere",
+        "-o",
+        s(&d("clean.ply")),
+        "--resolution",
+        "2",
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let o = qemd(&[
+        "report",
+        s(&d("clean.ply")),
+        "--out",
+        s(&d("report")),
+        "--seeds",
+        "0",
+        "--levels",
+        "0.2,0.4",
+        "--no-pairs",
+        "--patch",
+        "16",
+        "--size",
+        "96",
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let table = String::from_utf8_lossy(&o.stdout);
+    assert!(table.contains("| default |"), "{table}");
+    for f in [
+        "index.html",
+        "README.md",
+        "table.json",
+        "surf_std.svg",
+        "ang_deg.svg",
+        "render_noisy.png",
+        "render_faithful.png",
+        "render_bilateral.png",
+        "render_default.png",
+        "spectrum.svg",
+    ] {
+        assert!(d("report").join(f).is_file(), "{f}");
+    }
+    let md = std::fs::read_to_string(d("report").join("README.md")).unwrap();
+    assert!(md.contains("--levels 0.2,0.4"), "the regenerate line: {md}");
+    assert!(md.contains("Not run (no pairs directory given)."));
+
+    let o = qemd(&["spectrum", "--out", s(&d("spectrum")), "--patch", "20"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(String::from_utf8_lossy(&o.stdout).contains("half-amplitude"));
+    for f in [
+        "spectrum.svg",
+        "spectrum_error.svg",
+        "spectrum.csv",
+        "spectrum.md",
+        "patch_default.png",
+    ] {
+        assert!(d("spectrum").join(f).is_file(), "{f}");
+    }
+
+    // A point cloud is refused with one line naming the file; nothing is written.
+    let o = qemd(&[
+        "synth",
+        "sphere",
+        "-o",
+        s(&d("points.ply")),
+        "--points",
+        "500",
+    ]);
+    assert!(o.status.success());
+    let o = qemd(&["report", s(&d("points.ply")), "--out", s(&d("nothing"))]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("points.ply") && err.contains("needs a mesh"),
+        "{err}"
+    );
+    assert!(!d("nothing").exists());
+}

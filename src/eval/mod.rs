@@ -13,6 +13,12 @@
 //! * [`table`]: the Table I protocol (noise → denoise → metrics over levels, seeds and a list of
 //!   named methods) with a Markdown formatter.
 //! * [`render`](mod@render): z-buffered rasterisation of meshes and splatting of point clouds to PNG.
+//! * [`plot`]: line charts as SVG (plotters) for the report.
+//! * [`spectrum`]: the paper's frequency-response analysis on a height-field patch (2D FFT of
+//!   resampled height fields, radially averaged gain).
+//! * [`pairs`]: the real clean/noisy benchmark pairs, measured per method.
+//! * [`report`](mod@report): the quality report (`qemd report`): Table I for four rows, charts,
+//!   renderings, the pairs and the frequency response as HTML and Markdown.
 //!
 //! ```text
 //!  Shape ──mesh()──▶ Mesh ──add_noise()──▶ noisy ──denoise()──▶ denoised
@@ -25,13 +31,19 @@
 
 pub mod metrics;
 pub mod noise;
+pub mod pairs;
+pub mod plot;
 pub mod render;
+pub mod report;
+pub mod spectrum;
 pub mod synth;
 pub mod table;
 
 pub use metrics::{Metrics, Reference, evaluate};
 pub use noise::{NoiseModel, NoiseSpec, Noisy, add_noise, add_noise_with_length};
 pub use render::{Image, PointShading, RenderOptions, Shading, View, render};
+pub use report::{Report, ReportSpec, report_methods, write_report};
+pub use spectrum::{FrequencyResponse, SpectrumSpec, frequency_response};
 pub use synth::{Shape, SurfaceSampler};
 pub use table::{Table, TableMethod, TableProgress, TableSpec, run_table, run_table_with_progress};
 
@@ -103,6 +115,12 @@ pub enum EvalError {
     /// PNG encoding failed.
     #[error("PNG encoding failed: {0}")]
     Png(#[from] png::EncodingError),
+    /// Drawing a chart failed.
+    #[error("cannot draw the chart: {0}")]
+    Plot(String),
+    /// Serialising results to JSON failed.
+    #[error("cannot write the results as JSON: {0}")]
+    Json(#[from] serde_json::Error),
 }
 
 /// A triangle (or polygon) mesh in memory.
