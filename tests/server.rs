@@ -1102,26 +1102,7 @@ fn operations_endpoints_and_graceful_shutdown() {
 
     // SIGTERM: a clean exit.
     let mut s = s;
-    let pid = s.child.id().to_string();
-    assert!(
-        Command::new("kill")
-            .args(["-TERM", &pid])
-            .status()
-            .unwrap()
-            .success()
-    );
-    let start = Instant::now();
-    let status = loop {
-        if let Some(st) = s.child.try_wait().unwrap() {
-            break st;
-        }
-        assert!(
-            start.elapsed() < Duration::from_secs(15),
-            "no exit after SIGTERM"
-        );
-        std::thread::sleep(Duration::from_millis(20));
-    };
-    assert!(status.success(), "{status:?}\n{}", s.log());
+    sigterm_and_wait(&mut s);
     assert!(s.log().contains("stopped"));
 }
 
@@ -1153,6 +1134,28 @@ fn sigterm_puts_a_running_job_back_in_the_queue() {
         assert!(start.elapsed() < Duration::from_secs(300), "no checkpoint");
         std::thread::sleep(Duration::from_millis(1));
     }
+    sigterm_and_wait(&mut s);
+    let log = s.log();
+    s.kill();
+    assert!(
+        log.contains("resumes at the next start") || log.contains("successful"),
+        "{log}"
+    );
+    let s = Server::start(d.path(), config, &[]);
+    let done = wait(&c, &s, &id);
+    assert_eq!(done["status"], "successful", "{done}");
+    if log.contains("resumes at the next start") {
+        assert!(
+            done["report"]["tiles_resumed"].as_u64().unwrap() >= 1,
+            "{done}"
+        );
+    }
+    let want = cli(&path, &d.path().join("cli.ply"), &["--knn", "10"]);
+    assert!(download(&c, &s, &id) == want);
+}
+
+/// Sends SIGTERM to the server and waits (at most 15 s) for a clean exit.
+fn sigterm_and_wait(s: &mut Server) {
     let pid = s.child.id().to_string();
     assert!(
         Command::new("kill")
@@ -1173,21 +1176,4 @@ fn sigterm_puts_a_running_job_back_in_the_queue() {
         std::thread::sleep(Duration::from_millis(10));
     };
     assert!(exit.success(), "{exit:?}\n{}", s.log());
-    let log = s.log();
-    s.kill();
-    assert!(
-        log.contains("resumes at the next start") || log.contains("successful"),
-        "{log}"
-    );
-    let s = Server::start(d.path(), config, &[]);
-    let done = wait(&c, &s, &id);
-    assert_eq!(done["status"], "successful", "{done}");
-    if log.contains("resumes at the next start") {
-        assert!(
-            done["report"]["tiles_resumed"].as_u64().unwrap() >= 1,
-            "{done}"
-        );
-    }
-    let want = cli(&path, &d.path().join("cli.ply"), &["--knn", "10"]);
-    assert!(download(&c, &s, &id) == want);
 }
