@@ -289,7 +289,11 @@ fn split(
     // points all coincide (a stack of duplicates) stays one tile, whatever its count.
     let first = idx.first().map(|&i| pts[i]);
     let coincident = idx.iter().all(|&i| Some(pts[i]) == first);
-    if estimate <= target || idx.len() < 2 || size[axis] <= 0.0 || coincident {
+    // Estimates move in steps of one sample point (`weight` points), and a cut cannot separate
+    // equal coordinates: up to 2 % (or one step) over the target counts as the target, or a full
+    // tile would be split once more into a full one and a sliver.
+    let slack = weight.max(0.02 * target).min(0.5 * target);
+    if estimate <= target + slack || idx.len() < 2 || size[axis] <= 0.0 || coincident {
         nodes.push(Node::Leaf { tile: tiles.len() });
         tiles.push(Tile {
             id: tiles.len(),
@@ -302,7 +306,7 @@ fn split(
     // Split where the left side holds a whole number of full target-sized tiles and the right
     // side the rest: every tile but the last one holds the target, whatever the cloud's size, so
     // the memory a tile needs (the peak RSS) does not depend on the size of the cloud.
-    let count = (estimate / target).ceil().max(2.0);
+    let count = ((estimate - slack) / target).ceil().max(2.0);
     let left = (count / 2.0).floor();
     let mid = ((left * target / weight).round() as usize).clamp(1, idx.len() - 1);
     let mut value = pts[idx[mid]][axis];
@@ -411,6 +415,40 @@ mod tests {
             for tile in &plan.tiles {
                 assert_eq!(near.contains(&tile.id), plan.in_region(tile.id, 25.0, p));
             }
+        }
+    }
+
+    #[test]
+    fn every_tile_but_one_holds_the_target() {
+        // The tile a run needs memory for is the target whatever the cloud's size: the count is
+        // the least that fits, and only one tile holds the remainder.
+        // (Coordinates without ties: a cut cannot separate equal coordinates, so clouds with
+        // many of them get a sliver tile here and there.)
+        for (n, target) in [(50_000u64, 7_000u64), (50_000, 5_000), (200_000, 9_000)] {
+            let mut p = Planner::new(4096);
+            for i in 0..n {
+                let x = (hash(i) % 1_000_000) as f64 * 1e-3;
+                let y = (hash(i + 7) % 1_000_000) as f64 * 1e-3;
+                p.add(i, DVec3::new(x, y, (x * 0.01).sin()));
+            }
+            let plan = p.finish(target, 16, 2);
+            let sizes: Vec<u64> = plan.tiles.iter().map(|t| t.estimate).collect();
+            assert_eq!(
+                plan.tiles.len() as u64,
+                n.div_ceil(target),
+                "{n} / {target}: {sizes:?}"
+            );
+            let short = plan
+                .tiles
+                .iter()
+                .filter(|t| (t.estimate as f64) < 0.97 * target as f64)
+                .count();
+            assert!(short <= 1, "{n} / {target}: {short} short tiles");
+            let total: u64 = plan.tiles.iter().map(|t| t.estimate).sum();
+            assert!(
+                total.abs_diff(n) <= plan.tiles.len() as u64,
+                "{total} vs {n}"
+            );
         }
     }
 
