@@ -7,8 +7,9 @@
 # docs/quality/points.md (pass --out - to print it instead). Extra arguments go to the Python
 # script, e.g.  benches/compare_cgal_pcl.sh --points 20000 --seeds 1 --shapes cube
 #
-# Environment: WORK (data and result cache; default a fresh temporary directory, removed at the
-# end), SKIP_APT=1 (do not call apt-get).
+# Environment: MESH_DIR (directory with bun_zipper.ply and fandisk.off: adds the bunny and fandisk
+# shapes), WORK (data and result cache, reused by later runs with the same settings; default a
+# fresh temporary directory, removed at the end), SKIP_APT=1 (do not call apt-get).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -28,8 +29,8 @@ need_install() {
 if [[ "${SKIP_APT:-0}" != 1 ]] && need_install; then
   echo "installing ${PKGS[*]} with apt-get" >&2
   export DEBIAN_FRONTEND=noninteractive
-  apt-get install -y --no-install-recommends "${PKGS[@]}" >/dev/null \
-    || { apt-get update >/dev/null && apt-get install -y --no-install-recommends "${PKGS[@]}" >/dev/null; }
+  apt_install() { apt-get install -y --no-install-recommends "${PKGS[@]}" >/dev/null; }
+  apt_install || { apt-get update >/dev/null && apt_install; }
 fi
 
 # --- C++ drivers -----------------------------------------------------------------------------
@@ -61,5 +62,11 @@ if [[ -z "${WORK:-}" ]]; then
   WORK=$(mktemp -d -t qemd-cgal-pcl.XXXXXX)
   trap 'rm -rf "$WORK"' EXIT
 fi
-python3 benches/compare_cgal_pcl.py --qemd "$QEMD" --bin "$BIN" --work "$WORK" \
-  --command "${CARGO_TARGET_DIR:+CARGO_TARGET_DIR=$CARGO_TARGET_DIR }benches/compare_cgal_pcl.sh${*:+ $*}" "$@"
+ARGS=(--qemd "$QEMD" --bin "$BIN" --work "$WORK")
+COMMAND="benches/compare_cgal_pcl.sh${*:+ $*}"
+if [[ -n "${MESH_DIR:-}" ]]; then
+  ARGS+=(--mesh-dir "$MESH_DIR")
+  COMMAND="MESH_DIR=$MESH_DIR $COMMAND"
+fi
+COMMAND="${CARGO_TARGET_DIR:+CARGO_TARGET_DIR=$CARGO_TARGET_DIR }$COMMAND"
+python3 benches/compare_cgal_pcl.py "${ARGS[@]}" --command "$COMMAND" "$@"

@@ -49,7 +49,8 @@ static void report(const std::string& out, double read_s, double compute_s, doub
 int main(int argc, char** argv) {
   try {
     if (argc < 5) {
-      std::cerr << "usage: cgal_smooth jet IN OUT K | bilateral IN OUT_PREFIX K SHARPNESS ITERS NORMAL_K\n";
+      std::cerr << "usage: cgal_smooth jet IN OUT K\n"
+                   "       cgal_smooth bilateral IN OUT_PREFIX K SHARPNESS ITERS NORMAL_K\n";
       return 2;
     }
     const std::string mode = argv[1], in = argv[2], out = argv[3];
@@ -97,7 +98,8 @@ int main(int argc, char** argv) {
         auto t2 = std::chrono::steady_clock::now();
         CGAL::bilateral_smooth_point_set<Concurrency_tag>(
             pts, k,
-            CGAL::parameters::point_map(point_map).normal_map(normal_map).sharpness_angle(sharpness));
+            CGAL::parameters::point_map(point_map).normal_map(normal_map).sharpness_angle(
+                sharpness));
         compute_s += seconds_since(t2);
         const std::string path = out + ".it" + std::to_string(it) + ".xyz";
         auto t3 = std::chrono::steady_clock::now();
