@@ -322,6 +322,11 @@ pub(super) struct Inner {
     /// The jobs' rayon pool, at a lower priority (see [`bridge::lower_priority`]).
     job_pool: rayon::ThreadPool,
     sync_slots: tokio::sync::Semaphore,
+    /// Synchronous requests computing at once (one per core of the synchronous pool); the others
+    /// wait here in arrival order. Handing rayon more top-level work than it has threads lets a
+    /// thread waiting inside one request pick up a newer one, which buries the older request
+    /// under it: measured, that made the p99 latency 50× the p50.
+    sync_running: tokio::sync::Semaphore,
 }
 
 /// The job service handle (cheap to clone). See the [module overview](super).
@@ -380,6 +385,7 @@ impl Jobs {
         let jobs = Jobs {
             inner: Arc::new(Inner {
                 sync_slots: tokio::sync::Semaphore::new(settings.sync_concurrency),
+                sync_running: tokio::sync::Semaphore::new(threads),
                 settings,
                 store,
                 metrics: Metrics::new()?,
@@ -1024,6 +1030,12 @@ impl Jobs {
         let tmp = self.data_dir().join("tmp");
         let data_dir = self.data_dir().to_path_buf();
         let budget = self.inner.settings.memory_budget;
+        let _running = self
+            .inner
+            .sync_running
+            .acquire()
+            .await
+            .map_err(|_| JobsError::ShuttingDown)?;
         let run = bridge::cpu(&self.inner.sync_pool, move || {
             let dir = tempfile::Builder::new()
                 .prefix("sync-")
