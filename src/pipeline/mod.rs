@@ -31,7 +31,6 @@ use std::time::Instant;
 
 use cpu_time::ProcessTime;
 use glam::DVec3;
-use rayon::prelude::*;
 use thiserror::Error;
 
 use crate::denoise::cloud::{self, CloudRun, Globals};
@@ -697,36 +696,20 @@ fn partition(job: &Job, opts: &RunOptions, plan: &Plan, dir: &Path) -> Result<u6
         error: e,
     };
     let mut spill = SpillWriter::create(dir, plan.tiles.len()).map_err(tiling_err)?;
+    let mut near = Vec::new();
     stream(job, opts, |b| {
-        // Routing (owner and halo tiles of each point) runs in parallel over chunks of the batch;
-        // the records are then appended in input order, so the spill files are the same as a
-        // serial pass would write.
-        let routes: Vec<Vec<(u32, usize, bool)>> = b
-            .positions
-            .par_chunks(4096)
-            .enumerate()
-            .map(|(c, chunk)| {
-                let mut out = Vec::with_capacity(chunk.len() * 2);
-                let mut near = Vec::new();
-                for (j, &p) in chunk.iter().enumerate() {
-                    if !p.is_finite() {
-                        continue;
-                    }
-                    let at = (c * 4096 + j) as u32;
-                    let owner = plan.owner(p);
-                    out.push((at, owner, false));
-                    near.clear();
-                    plan.near(p, plan.halo, &mut near);
-                    out.extend(near.iter().filter(|&&t| t != owner).map(|&t| (at, t, true)));
-                }
-                out
-            })
-            .collect();
-        for (at, t, halo) in routes.into_iter().flatten() {
-            let j = at as usize;
-            spill
-                .push(t, b.start + j as u64, b.positions[j], halo)
-                .map_err(tiling_err)?;
+        for (j, &p) in b.positions.iter().enumerate() {
+            if !p.is_finite() {
+                continue;
+            }
+            let i = b.start + j as u64;
+            let owner = plan.owner(p);
+            spill.push(owner, i, p, false).map_err(tiling_err)?;
+            near.clear();
+            plan.near(p, plan.halo, &mut near);
+            for &t in near.iter().filter(|&&t| t != owner) {
+                spill.push(t, i, p, true).map_err(tiling_err)?;
+            }
         }
         Ok(())
     })?;
