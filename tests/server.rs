@@ -955,25 +955,10 @@ fn full_queue_answers_429_and_delete_cancels_within_a_second() {
 fn killed_server_resumes_the_job_from_its_checkpoints() {
     let d = tempfile::tempdir().unwrap();
     let config = "job_tile_points = 1000\n";
-    let mut s = Server::start(d.path(), config, &[]);
     let c = client();
-    let path = d.path().join("in.ply");
-    write_cloud(
-        &path,
-        if cfg!(debug_assertions) {
-            20_000
-        } else {
-            60_000
-        },
-        21,
-    );
-    let up = upload(&c, &s, "", std::fs::read(&path).unwrap());
-    let (status, _, v) = post_job(&c, &s, &json!({"input": up["id"]}));
-    assert_eq!(status, StatusCode::CREATED);
-    let id = v["id"].as_str().unwrap().to_string();
+    let (mut s, id, work) = start_tiled_job(d.path(), config, &c, 21, json!({}));
 
     // SIGKILL as soon as a tile checkpoint exists.
-    let work = s.data.join("jobs").join(&id).join("work");
     let start = Instant::now();
     let checkpoints = |dir: &Path| {
         std::fs::read_dir(dir)
@@ -1014,7 +999,7 @@ fn killed_server_resumes_the_job_from_its_checkpoints() {
     );
     assert!(s.log().contains("re-queued"));
     let bytes = download(&c, &s, &id);
-    let want = cli(&path, &d.path().join("cli.ply"), &[]);
+    let want = cli(&d.path().join("in.ply"), &d.path().join("cli.ply"), &[]);
     assert!(
         bytes == want,
         "resumed result differs from an uninterrupted CLI run"
@@ -1110,23 +1095,8 @@ fn operations_endpoints_and_graceful_shutdown() {
 fn sigterm_puts_a_running_job_back_in_the_queue() {
     let d = tempfile::tempdir().unwrap();
     let config = "job_tile_points = 1000\n";
-    let mut s = Server::start(d.path(), config, &[]);
     let c = client();
-    let path = d.path().join("in.ply");
-    write_cloud(
-        &path,
-        if cfg!(debug_assertions) {
-            20_000
-        } else {
-            60_000
-        },
-        33,
-    );
-    let up = upload(&c, &s, "", std::fs::read(&path).unwrap());
-    let (status, _, v) = post_job(&c, &s, &json!({"input": up["id"], "params": {"knn": 10}}));
-    assert_eq!(status, StatusCode::CREATED);
-    let id = v["id"].as_str().unwrap().to_string();
-    let work = s.data.join("jobs").join(&id).join("work");
+    let (mut s, id, work) = start_tiled_job(d.path(), config, &c, 33, json!({"knn": 10}));
     let start = Instant::now();
     while !std::fs::read_dir(&work).is_ok_and(|mut it| {
         it.any(|e| e.is_ok_and(|e| e.file_name().to_string_lossy().ends_with(".res")))
@@ -1150,7 +1120,11 @@ fn sigterm_puts_a_running_job_back_in_the_queue() {
             "{done}"
         );
     }
-    let want = cli(&path, &d.path().join("cli.ply"), &["--knn", "10"]);
+    let want = cli(
+        &d.path().join("in.ply"),
+        &d.path().join("cli.ply"),
+        &["--knn", "10"],
+    );
     assert!(download(&c, &s, &id) == want);
 }
 
@@ -1176,4 +1150,29 @@ fn sigterm_and_wait(s: &mut Server) {
         std::thread::sleep(Duration::from_millis(10));
     };
     assert!(exit.success(), "{exit:?}\n{}", s.log());
+}
+
+/// Starts a server in `dir` with `config`, uploads a cloud large enough to run in many tiles and
+/// submits a job on it with `params`: the server, the job id and the job's work directory.
+fn start_tiled_job(
+    dir: &Path,
+    config: &str,
+    c: &Client,
+    seed: u64,
+    params: Value,
+) -> (Server, String, PathBuf) {
+    let s = Server::start(dir, config, &[]);
+    let path = dir.join("in.ply");
+    let n = if cfg!(debug_assertions) {
+        20_000
+    } else {
+        60_000
+    };
+    write_cloud(&path, n, seed);
+    let up = upload(c, &s, "", std::fs::read(&path).unwrap());
+    let (status, _, v) = post_job(c, &s, &json!({"input": up["id"], "params": params}));
+    assert_eq!(status, StatusCode::CREATED, "{v}");
+    let id = v["id"].as_str().unwrap().to_string();
+    let work = s.data.join("jobs").join(&id).join("work");
+    (s, id, work)
 }
