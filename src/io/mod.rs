@@ -738,6 +738,15 @@ pub fn open_file(path: &Path) -> Result<File, IoError> {
     File::open(path).map_err(|e| IoError::io(path, e))
 }
 
+/// The length of `file` when it is a regular file (not a pipe or device), to check headers
+/// against.
+pub fn regular_len(file: &File) -> Option<u64> {
+    file.metadata()
+        .ok()
+        .filter(|m| m.is_file())
+        .map(|m| m.len())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -81,7 +81,7 @@ use self::header::{DEFAULT_VIEWPOINT, Header};
 use super::text::{LineEnding, Tally, check_batch, show, tokens};
 use super::{
     AtomicFile, Extras, Format, IoError, Meta, Sink, SinkOptions, Source, SourceInfo, Trailer,
-    foreign_field_type, open_file,
+    foreign_field_type, open_file, regular_len,
 };
 use crate::points::{Endian, FLAG_NOISE, Field, PointBatch, ScalarType, Schema};
 
@@ -295,11 +295,7 @@ impl PcdSource {
     /// [`IoError::Truncated`] when the file is shorter than the points its header announces.
     pub fn open(path: &Path) -> Result<PcdSource, IoError> {
         let file = open_file(path)?;
-        let file_len = file
-            .metadata()
-            .ok()
-            .filter(|m| m.is_file())
-            .map(|m| m.len());
+        let file_len = regular_len(&file);
         let mut reader = BufReader::with_capacity(READ_BUF, file);
         let header = header::read_header(&mut reader, path)?;
         for axis in ["x", "y", "z"] {

@@ -55,7 +55,7 @@ use self::body::{FaceTarget, PosCodec, Walker, eof, faces_digest, format_ascii, 
 use self::header::Header;
 use super::{
     AtomicFile, Extras, IoError, Meta, NOISE_FIELD, Sink, SinkOptions, Source, SourceInfo, Trailer,
-    foreign_field_type, open_file,
+    foreign_field_type, open_file, regular_len,
 };
 use crate::points::{FLAG_NOISE, Faces, PointBatch, ScalarType, Schema, write_scalar};
 
@@ -175,11 +175,7 @@ impl PlySource {
     /// face indices; [`IoError::Truncated`] when a binary file is shorter than its vertex data.
     pub fn open(path: &Path) -> Result<PlySource, IoError> {
         let file = open_file(path)?;
-        let file_len = file
-            .metadata()
-            .ok()
-            .filter(|m| m.is_file())
-            .map(|m| m.len());
+        let file_len = regular_len(&file);
         let mut reader = BufReader::with_capacity(READ_BUF, file);
         let header = header::read_header(&mut reader, path)?;
         let encoding = header.encoding;
