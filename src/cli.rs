@@ -28,6 +28,9 @@ pub enum Command {
     Synth(SynthArgs),
     /// Add seeded noise to a mesh or point cloud.
     Noise(NoiseArgs),
+    /// The real-scan protocol: displacement over each point's 16-NN radius (do no harm), or with
+    /// --clean the noise removed, per class.
+    Harm(HarmArgs),
     /// Compare a denoised file with the clean one (EVALUATION.md metrics).
     Eval(EvalArgs),
     /// Run the paper's Table I protocol (20/40/80 % iso noise) on a clean mesh.
@@ -139,6 +142,15 @@ pub struct DenoiseArgs {
     /// Do not restore the enclosed volume of closed meshes.
     #[arg(long)]
     pub no_volume: bool,
+    /// Clouds: move every point with a surface or line quadric, whatever its neighbourhood looks
+    /// like (by default scatter, sparse and degenerate neighbourhoods stay, plane votes are
+    /// weighted by agreement and every step is bounded by the local noise; --paper implies this).
+    #[arg(long)]
+    pub no_guard: bool,
+    /// Hard cap on any point's displacement, in the input's units (metres for LiDAR). Default: none
+    /// beyond the operator's own bound of 3 × the local noise.
+    #[arg(long, value_name = "DISTANCE")]
+    pub max_move: Option<f64>,
     /// k-ring size of tangent planes in mesh mode (the vertex itself included).
     #[arg(long)]
     pub rings: Option<usize>,
@@ -268,6 +280,12 @@ impl DenoiseArgs {
         if self.no_volume {
             p.volume = false;
         }
+        if self.no_guard {
+            p.guard = false;
+        }
+        if self.max_move.is_some() {
+            p.max_move = self.max_move;
+        }
         if let Some(i) = self.iterations {
             p.iterations = i;
         }
@@ -311,6 +329,34 @@ pub struct NoiseArgs {
     /// RNG seed.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// The unit of --level: l (the mean edge length, or mean spacing for clouds) or
+    /// median-spacing (the median nearest-neighbour distance, the real-scan protocol's unit).
+    #[arg(long, value_enum, default_value_t = NoiseUnit::L)]
+    pub unit: NoiseUnit,
+}
+
+/// The unit of `qemd noise --level`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum NoiseUnit {
+    /// The mean edge length (meshes) or mean nearest-neighbour spacing (clouds).
+    L,
+    /// The median nearest-neighbour spacing.
+    MedianSpacing,
+}
+
+/// Flags of `qemd harm`.
+#[derive(Debug, Args)]
+pub struct HarmArgs {
+    /// The method's input: the scan as it is, or with --clean the noisy scan.
+    pub input: PathBuf,
+    /// The method's output (same points in the same order; any readable format).
+    pub output: PathBuf,
+    /// The clean scan: measure the noise removed instead of the displacement.
+    #[arg(long)]
+    pub clean: Option<PathBuf>,
+    /// Print JSON instead of a table.
+    #[arg(long)]
+    pub json: bool,
 }
 
 /// Flags of `qemd eval`.

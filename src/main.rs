@@ -13,8 +13,8 @@ use clap::Parser;
 use qem_denoise::api::ApiSettings;
 use qem_denoise::api::server::{ServeOptions, Server, shutdown_signal};
 use qem_denoise::cli::{
-    Cli, Command, DemoArgs, DenoiseArgs, EvalArgs, NoiseArgs, OutliersArg, RenderArgs, ReportArgs,
-    ServeArgs, SpectrumArgs, SynthArgs, TableArgs,
+    Cli, Command, DemoArgs, DenoiseArgs, EvalArgs, HarmArgs, NoiseArgs, NoiseUnit, OutliersArg,
+    RenderArgs, ReportArgs, ServeArgs, SpectrumArgs, SynthArgs, TableArgs,
 };
 use qem_denoise::config::{Config, LogFormat};
 use qem_denoise::denoise::{self, Params};
@@ -48,6 +48,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Denoise(a) => denoise(*a),
         Command::Synth(a) => synth(a),
         Command::Noise(a) => noise(a),
+        Command::Harm(a) => harm(a),
         Command::Eval(a) => eval(a),
         Command::Table(a) => table(a),
         Command::Render(a) => render_cmd(a),
@@ -261,14 +262,74 @@ fn noise(a: NoiseArgs) -> Result<()> {
     };
     spec.validate()?;
     let mut cloud = Cloud::read(&a.input, None)?;
-    let noisy = add_noise(&cloud.positions, cloud.faces(), &spec)
-        .with_context(|| a.input.display().to_string())?;
+    let noisy = match a.unit {
+        NoiseUnit::L => add_noise(&cloud.positions, cloud.faces(), &spec),
+        NoiseUnit::MedianSpacing => qem_denoise::eval::scans::median_spacing(&cloud.positions)
+            .and_then(|l| {
+                qem_denoise::eval::add_noise_with_length(&cloud.positions, cloud.faces(), &spec, l)
+            }),
+    }
+    .with_context(|| a.input.display().to_string())?;
     cloud.positions = noisy.positions;
     cloud.write(&a.output, None)?;
     eprintln!(
         "qemd: {} points displaced with σ = {:.6e} ({} × L = {:.6e})",
         noisy.displaced, noisy.sigma, a.level, noisy.l
     );
+    Ok(())
+}
+
+fn harm(a: HarmArgs) -> Result<()> {
+    use qem_denoise::eval::scans;
+    let input = Cloud::read(&a.input, None)?;
+    let output = Cloud::read(&a.output, None)?;
+    let ctx = || a.output.display().to_string();
+    match &a.clean {
+        None => {
+            let classes =
+                scans::classes_of(&input).with_context(|| a.input.display().to_string())?;
+            let h = scans::harm(&input, &output, &classes).with_context(ctx)?;
+            if a.json {
+                println!("{}", serde_json::to_string_pretty(&h)?);
+            } else {
+                println!(
+                    "{:<24} {:>9} {:>8} {:>8} {:>8} {:>10} {:>10}",
+                    "class", "points", "p50/r16", "p99/r16", "max/r16", "p99", "max"
+                );
+                for r in &h.rows {
+                    println!(
+                        "{:<24} {:>9} {:>8.3} {:>8.3} {:>8.3} {:>10.4} {:>10.4}",
+                        r.name,
+                        r.count,
+                        r.relative.p50,
+                        r.relative.p99,
+                        r.relative.max,
+                        r.absolute.p99,
+                        r.absolute.max
+                    );
+                }
+            }
+        }
+        Some(c) => {
+            let clean = Cloud::read(c, None)?;
+            let classes = scans::classes_of(&clean).with_context(|| c.display().to_string())?;
+            let n = scans::noise_removed(&clean, &input, &output, &classes).with_context(ctx)?;
+            if a.json {
+                println!("{}", serde_json::to_string_pretty(&n)?);
+            } else {
+                println!(
+                    "{:<24} {:>9} {:>11} {:>11} {:>7}",
+                    "class", "points", "rms noisy", "rms out", "ratio"
+                );
+                for r in n.rows.iter().chain(std::iter::once(&n.planar)) {
+                    println!(
+                        "{:<24} {:>9} {:>11.4e} {:>11.4e} {:>7.3}",
+                        r.name, r.count, r.noisy, r.denoised, r.ratio
+                    );
+                }
+            }
+        }
+    }
     Ok(())
 }
 

@@ -23,7 +23,7 @@ use crate::io::sniff::{SNIFF_LEN, sniff};
 use crate::jobs::{SyncRequest, canonical_format};
 
 /// Parameters whose values are numbers (query strings carry text).
-const NUMERIC: [&str; 10] = [
+const NUMERIC: [&str; 11] = [
     "rings",
     "knn",
     "filter",
@@ -34,10 +34,11 @@ const NUMERIC: [&str; 10] = [
     "sigma_r",
     "iterations",
     "outlier_alpha",
+    "max_move",
 ];
 
 /// Parameters whose values are booleans (`true` or `false`).
-const BOOLEAN: [&str; 2] = ["paper", "volume"];
+const BOOLEAN: [&str; 3] = ["paper", "volume", "guard"];
 
 /// A query string split: input format, output format, denoising parameters (JSON object).
 type Split = (Option<String>, Option<String>, Map<String, Value>);

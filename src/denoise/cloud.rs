@@ -32,9 +32,11 @@ use glam::DVec3;
 use rayon::prelude::*;
 
 use super::frame::Frame;
+use super::guarded::{self, Guard};
 use super::normals::{filter_point_normals, pca_normals};
 use super::qem::{is_duplicate, merge_step};
-use super::{DenoiseError, Method, Params, Stats, Timer, bilateral, qem};
+use super::structure::{Structure, classify, local_fits, noise_scale};
+use super::{DenoiseError, Method, Params, Stats, StructureCounts, Timer, bilateral, qem};
 use crate::geometry::ExactSum;
 use crate::neighbours::{KnnIndex, Neighbourhoods};
 use crate::points::Aabb;
@@ -59,7 +61,8 @@ pub fn reach(params: &Params) -> usize {
         // Per cycle: PCA normals (1 hop), each filter iteration (1), each update (1: the
         // neighbours' planes, moved by the previous update); the first update also reads the
         // neighbours' normals, whose PCA reads their lists (+1).
-        Method::Qem => s.cycles * (2 + s.filter + s.updates),
+        // The guarded operator's classes and noise scales read the members' fits (+1).
+        Method::Qem => s.cycles * (2 + s.filter + s.updates + usize::from(params.guard)),
         Method::Bilateral => s.cycles,
     }
 }
@@ -92,6 +95,9 @@ pub struct CloudResult {
     pub degenerate: Vec<bool>,
     /// Why a pass left the point in place (`qem::stay` flags, or-ed over passes).
     pub stayed: Vec<u8>,
+    /// The neighbourhood class of the first cycle (`Structure` code) for the guarded operator,
+    /// `None` for the others.
+    pub structure: Option<Vec<u8>>,
     /// Phase timings.
     pub stats: Stats,
 }
@@ -104,6 +110,13 @@ impl CloudResult {
             s.points += 1;
             s.duplicates += self.duplicate[i] as u64;
             s.degenerate_neighbourhoods += self.degenerate[i] as u64;
+        }
+        if let Some(classes) = &self.structure {
+            let mut c = [0u64; 6];
+            for i in (0..input.len()).filter(|&i| counted(i)) {
+                c[classes[i] as usize] += 1;
+            }
+            s.structure = StructureCounts::from_codes(c);
         }
         s.book_moves(input, &self.positions, &self.stayed, counted);
         stats.merge(&s);
@@ -238,10 +251,57 @@ pub fn run(
     timer.lap("neighbours", &mut stats);
 
     let sched = params.schedule(false);
+    let guard = params.method == Method::Qem && params.guard;
     let mut cur = frame.positions.clone();
     let mut stayed = vec![0u8; n];
     let mut degenerate = vec![false; n];
+    let mut structure = None;
     for pass in 0..sched.cycles {
+        if guard {
+            let fits = local_fits(&cur, &lists);
+            let classes = classify(&fits, &lists, &radii);
+            let noise = noise_scale(&fits, &lists);
+            if pass == 0 {
+                for (d, c) in degenerate.iter_mut().zip(&classes) {
+                    *d = *c == Structure::Degenerate;
+                }
+                structure = Some(classes.iter().map(|c| *c as u8).collect::<Vec<u8>>());
+            }
+            let planes: Vec<DVec3> = fits
+                .iter()
+                .zip(&classes)
+                .map(|(f, c)| {
+                    if c.takes_planes() {
+                        f.normal
+                    } else {
+                        DVec3::ZERO
+                    }
+                })
+                .collect();
+            let normals = filter_point_normals(
+                &cur,
+                &lists,
+                &radii,
+                &planes,
+                params.sigma_r_floor(false),
+                sched.filter,
+            );
+            timer.lap("normals", &mut stats);
+            let g = Guard {
+                start: &frame.positions,
+                normals: &normals,
+                fits: &fits,
+                classes: &classes,
+                noise: &noise,
+                max_move: params.max_move,
+            };
+            for _ in 0..sched.updates {
+                let step = guarded::step(&cur, &lists, &g, params);
+                cur = merge_step(step, &mut stayed);
+            }
+            timer.lap("solve", &mut stats);
+            continue;
+        }
         let (normals, _) = pca_normals(&cur, &lists);
         if pass == 0 {
             for (d, (nrm, p)) in degenerate.iter_mut().zip(normals.iter().zip(&cur)) {
@@ -274,6 +334,13 @@ pub fn run(
         }
         timer.lap("solve", &mut stats);
     }
+    if let Some(m) = params.max_move {
+        for ((c, &p0), st) in cur.iter_mut().zip(&frame.positions).zip(&mut stayed) {
+            let (p, flag) = guarded::clamp(p0, *c, m);
+            *c = p;
+            *st |= flag;
+        }
+    }
     let exact: Vec<bool> = tainted.iter().map(|t| !t).collect();
     Ok(CloudResult {
         positions: frame.restore(&cur),
@@ -282,6 +349,7 @@ pub fn run(
         duplicate: frame.restore(&duplicate),
         degenerate: frame.restore(&degenerate),
         stayed: frame.restore(&stayed),
+        structure: structure.map(|c| frame.restore(&c)),
         stats,
     })
 }

@@ -21,11 +21,13 @@ pub mod bilateral;
 pub mod cloud;
 pub mod filtered;
 pub mod frame;
+pub mod guarded;
 pub mod normals;
 pub mod qem;
 mod stats;
+pub mod structure;
 
-pub use stats::{PhaseTiming, Stats, Timer};
+pub use stats::{Displacements, PhaseTiming, Stats, StructureCounts, Timer};
 
 use glam::DVec3;
 use thiserror::Error;
@@ -174,6 +176,13 @@ pub struct Params {
     /// `--volume`: keep the enclosed volume of closed meshes (a final offset along the normals;
     /// iso noise leaves the expected volume unchanged, so the input's is the target).
     pub volume: bool,
+    /// `--no-guard` clears it: on point clouds, classify every neighbourhood ([`structure`]) and
+    /// take the quadric step only where it shows a surface or a line, with robust plane weights
+    /// and a step bounded by the local noise ([`guarded`]). The paper's operator has none.
+    pub guard: bool,
+    /// `--max-move`: a hard cap on any point's displacement, in the input's units (metres for
+    /// LiDAR). `None`: no cap beyond the operator's own bounds.
+    pub max_move: Option<f64>,
 }
 
 /// Default point-mode neighbourhood size.
@@ -196,6 +205,8 @@ impl Default for Params {
             mu: 0.5,
             sigma_r: None,
             volume: true,
+            guard: true,
+            max_move: None,
         }
     }
 }
@@ -222,6 +233,7 @@ impl Params {
             iterations: 1,
             solve: SolveKind::Plain,
             volume: false,
+            guard: false,
             ..Params::default()
         }
     }
@@ -314,6 +326,9 @@ impl Params {
             .is_some_and(|s| !s.is_finite() || s <= 0.0 || s > 2.0)
         {
             return bad("sigma-r", "must be in (0, 2]");
+        }
+        if self.max_move.is_some_and(|m| !m.is_finite() || m < 0.0) {
+            return bad("max-move", "must be finite and ≥ 0");
         }
         self.solver().validate()?;
         Ok(())

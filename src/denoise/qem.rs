@@ -21,6 +21,9 @@ pub mod stay {
     /// The minimiser lay farther than the point's neighbourhood reaches (isolated points and
     /// outliers, whose planes all belong to a distant surface).
     pub const FAR: u8 = 2;
+    /// The guarded step's total displacement was clamped to the bound of the local noise (or to
+    /// `--max-move`).
+    pub const BOUNDED: u8 = 4;
 }
 
 /// The new position of `v` from the quadric `q` (relative to `v`), and why it stayed put, if it

@@ -40,8 +40,17 @@ pub struct Stats {
     pub duplicates: u64,
     /// Non-finite points, excluded from processing.
     pub non_finite: u64,
+    /// Points whose displacement was clamped to the bound of their local noise or `--max-move`.
+    #[serde(default)]
+    pub bounded: u64,
     /// Largest distance between a point's input and output positions.
     pub max_step: f64,
+    /// Points per neighbourhood class (point clouds with the guarded operator).
+    #[serde(default)]
+    pub structure: StructureCounts,
+    /// The distribution of displacements, in the input's units.
+    #[serde(default)]
+    pub displacement: Displacements,
     /// Timing per phase, in the order phases first ran.
     pub phases: Vec<PhaseTiming>,
 }
@@ -63,7 +72,10 @@ impl Stats {
             }
             self.singular += (stayed[i] & 1 != 0) as u64;
             self.far += (stayed[i] & 2 != 0) as u64;
+            self.bounded += (stayed[i] & 4 != 0) as u64;
+            self.displacement.add(step);
         }
+        self.displacement.refresh();
     }
 
     /// Adds another run's counters and phase timings (tiles of one job).
@@ -72,6 +84,9 @@ impl Stats {
         self.moved += o.moved;
         self.singular += o.singular;
         self.far += o.far;
+        self.bounded += o.bounded;
+        self.structure.merge(&o.structure);
+        self.displacement.merge(&o.displacement);
         self.unreferenced += o.unreferenced;
         self.zero_area_faces += o.zero_area_faces;
         self.degenerate_neighbourhoods += o.degenerate_neighbourhoods;
@@ -95,6 +110,135 @@ impl Stats {
                 cpu_s,
             });
         }
+    }
+}
+
+/// Points per neighbourhood class ([`super::structure::Structure`]).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct StructureCounts {
+    /// Surfaces.
+    pub surface: u64,
+    /// Creases and corners.
+    pub edge: u64,
+    /// Lines (wires, poles, scan rings).
+    pub line: u64,
+    /// Volumetric scatter (left in place).
+    pub scatter: u64,
+    /// Isolated points (left in place).
+    pub sparse: u64,
+    /// Coincident neighbourhoods (left in place).
+    pub degenerate: u64,
+}
+
+impl StructureCounts {
+    /// Counts from per-class totals indexed by class code.
+    pub fn from_codes(c: [u64; 6]) -> StructureCounts {
+        StructureCounts {
+            surface: c[0],
+            edge: c[1],
+            line: c[2],
+            scatter: c[3],
+            sparse: c[4],
+            degenerate: c[5],
+        }
+    }
+
+    /// Adds another run's counts.
+    pub fn merge(&mut self, o: &StructureCounts) {
+        self.surface += o.surface;
+        self.edge += o.edge;
+        self.line += o.line;
+        self.scatter += o.scatter;
+        self.sparse += o.sparse;
+        self.degenerate += o.degenerate;
+    }
+}
+
+/// Relative width of a displacement histogram bin (2 %).
+const BIN_RATIO: f64 = 1.02;
+/// Lower edge of the first non-zero bin: displacements below it share bin 1.
+const BIN_FLOOR: f64 = 1e-9;
+
+/// The distribution of displacements as a histogram with bins 2 % wide (bin 0: no move), so runs
+/// and tiles merge exactly; quantiles are read as a bin's upper edge (within 2 % above the true
+/// value), the maximum is exact.
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Displacements {
+    /// Points counted.
+    pub count: u64,
+    /// Median displacement (upper bin edge).
+    pub p50: f64,
+    /// 99th percentile (upper bin edge).
+    pub p99: f64,
+    /// Largest displacement.
+    pub max: f64,
+    /// Non-empty bins as `[bin, count]`, ascending.
+    pub bins: Vec<[u64; 2]>,
+}
+
+impl Displacements {
+    fn bin_of(d: f64) -> u64 {
+        if d <= 0.0 || d.is_nan() {
+            0
+        } else if d <= BIN_FLOOR {
+            1
+        } else {
+            2 + ((d / BIN_FLOOR).ln() / BIN_RATIO.ln()).floor().min(1e6) as u64
+        }
+    }
+
+    fn upper_edge(bin: u64) -> f64 {
+        match bin {
+            0 => 0.0,
+            1 => BIN_FLOOR,
+            b => BIN_FLOOR * BIN_RATIO.powi((b - 1) as i32),
+        }
+    }
+
+    /// Counts one displacement.
+    pub fn add(&mut self, d: f64) {
+        let b = Self::bin_of(d);
+        match self.bins.binary_search_by_key(&b, |e| e[0]) {
+            Ok(k) => self.bins[k][1] += 1,
+            Err(k) => self.bins.insert(k, [b, 1]),
+        }
+        self.count += 1;
+        self.max = self.max.max(d);
+    }
+
+    /// Adds another run's displacements.
+    pub fn merge(&mut self, o: &Displacements) {
+        for &[b, c] in &o.bins {
+            match self.bins.binary_search_by_key(&b, |e| e[0]) {
+                Ok(k) => self.bins[k][1] += c,
+                Err(k) => self.bins.insert(k, [b, c]),
+            }
+        }
+        self.count += o.count;
+        self.max = self.max.max(o.max);
+        self.refresh();
+    }
+
+    /// The `q` quantile (upper bin edge, capped by the maximum).
+    pub fn quantile(&self, q: f64) -> f64 {
+        if self.count == 0 {
+            return 0.0;
+        }
+        let rank = ((q * self.count as f64).ceil() as u64).clamp(1, self.count);
+        let mut seen = 0;
+        for &[b, c] in &self.bins {
+            seen += c;
+            if seen >= rank {
+                return Self::upper_edge(b).min(self.max);
+            }
+        }
+        self.max
+    }
+
+    /// Recomputes `p50` and `p99` from the bins (after [`Displacements::add`]).
+    pub fn refresh(&mut self) {
+        self.p50 = self.quantile(0.5);
+        self.p99 = self.quantile(0.99);
     }
 }
 

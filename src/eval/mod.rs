@@ -17,6 +17,8 @@
 //! * [`spectrum`]: the paper's frequency-response analysis on a height-field patch (2D FFT of
 //!   resampled height fields, radially averaged gain).
 //! * [`pairs`]: the real clean/noisy benchmark pairs, measured per method.
+//! * [`scans`]: the real-scan protocol (`qemd harm`): displacement over r16 on the scan as it is,
+//!   and noise removed from the scan plus known noise, per class.
 //! * [`report`](mod@report): the quality report (`qemd report`): Table I for four rows, charts,
 //!   renderings, the pairs and the frequency response as HTML and Markdown.
 //!
@@ -35,6 +37,7 @@ pub mod pairs;
 pub mod plot;
 pub mod render;
 pub mod report;
+pub mod scans;
 pub mod spectrum;
 pub mod synth;
 pub mod table;

@@ -7,7 +7,8 @@
 //!   `wᵀAw + 2bᵀw + c`. [`Quadric::plane`] builds the squared distance to a plane; quadrics add.
 //! * [`Solve`] turns a summed quadric into a new position: the paper's `plain` minimiser, Lindstrom's
 //!   `robust` truncated pseudo-inverse, or a `regularised` minimiser that bounds the step.
-//! * [`pca_normal`] fits a plane to a neighbourhood (smallest eigenvector of the centred covariance).
+//! * [`pca_fit`] gives a neighbourhood's principal axes; [`pca_normal`] its plane (smallest
+//!   eigenvector of the centred covariance).
 //! * [`ExactSum`] adds f64 values without rounding, so global means are the same bits whatever the
 //!   order or grouping of the terms (tiles, threads).
 //!
@@ -211,10 +212,37 @@ pub struct PlaneFit {
 /// a single point and has no plane.
 pub const DEGENERATE_RATIO: f64 = 1e-12;
 
-/// Fits a plane to `pts` (already relative to some nearby origin): the normal is the eigenvector of
-/// the smallest eigenvalue of `Σ (q − q̄)(q − q̄)ᵀ`. `None` for fewer than three points, coincident
-/// or collinear points (middle eigenvalue ≤ 1e-12·largest), or non-finite input.
-pub fn pca_normal(pts: impl Iterator<Item = DVec3> + Clone) -> Option<PlaneFit> {
+/// The principal axes of a neighbourhood: the centred covariance's eigen decomposition.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PcaFit {
+    /// Number of points.
+    pub count: usize,
+    /// Eigenvalues of `Σ (q − q̄)(q − q̄)ᵀ`, ascending (sums, not means: divide by `count` for
+    /// variances).
+    pub values: [f64; 3],
+    /// Unit eigenvectors, `vectors[i]` for `values[i]`: `vectors[0]` is the plane normal,
+    /// `vectors[2]` the line direction.
+    pub vectors: [DVec3; 3],
+    /// Mean of the neighbourhood, relative to the caller's origin.
+    pub centroid: DVec3,
+}
+
+impl PcaFit {
+    /// True when the points span a plane (middle eigenvalue above [`DEGENERATE_RATIO`] of the
+    /// largest): the normal is meaningful.
+    pub fn has_plane(&self) -> bool {
+        self.values[1] > DEGENERATE_RATIO * self.values[2]
+    }
+
+    /// True when the points are not all coincident: the line direction is meaningful.
+    pub fn has_axis(&self) -> bool {
+        self.values[2] > 0.0
+    }
+}
+
+/// The principal axes of `pts` (already relative to some nearby origin). `None` for fewer than
+/// three points or non-finite input; coincident points give a fit with all eigenvalues zero.
+pub fn pca_fit(pts: impl Iterator<Item = DVec3> + Clone) -> Option<PcaFit> {
     let mut n = 0usize;
     let mut sum = DVec3::ZERO;
     for p in pts.clone() {
@@ -234,13 +262,26 @@ pub fn pca_normal(pts: impl Iterator<Item = DVec3> + Clone) -> Option<PlaneFit> 
         return None;
     }
     let e = cov.eigen();
-    if e.values[1].is_nan() || e.values[1] <= DEGENERATE_RATIO * e.values[2] {
+    if e.values.iter().any(|v| v.is_nan()) {
         return None;
     }
-    Some(PlaneFit {
-        normal: e.vectors[0],
+    Some(PcaFit {
+        count: n,
         values: e.values,
+        vectors: e.vectors,
         centroid: mean,
+    })
+}
+
+/// Fits a plane to `pts` (already relative to some nearby origin): the normal is the eigenvector of
+/// the smallest eigenvalue of `Σ (q − q̄)(q − q̄)ᵀ`. `None` for fewer than three points, coincident
+/// or collinear points (middle eigenvalue ≤ 1e-12·largest), or non-finite input.
+pub fn pca_normal(pts: impl Iterator<Item = DVec3> + Clone) -> Option<PlaneFit> {
+    let f = pca_fit(pts)?;
+    f.has_plane().then_some(PlaneFit {
+        normal: f.vectors[0],
+        values: f.values,
+        centroid: f.centroid,
     })
 }
 

@@ -1,0 +1,194 @@
+//! The guarded quadric step of the default point operator: quadrics only where the
+//! neighbourhood shows a surface or a line, robust weights on every neighbour's vote, and a step
+//! bounded by the local noise.
+//!
+//! # Brief overview
+//!
+//! For a point `i` of class [`Structure::Surface`] or [`Structure::Edge`], each Surface or Edge
+//! member `u` of its list votes with its (filtered, curvature-corrected) tangent plane; for a
+//! [`Structure::Line`] point each Line member votes with its line (the quadric of the squared
+//! distance to the line through `u` along its axis: `A = I − d dᵀ`). A vote is weighted by how
+//! well the plane (line) agrees with `i`:
+//!
+//! ```text
+//!   w_u = exp(−r² / (2 (AGREE · s_u)²)),   r = distance of i to u's plane (line),
+//!                                          s_u = u's noise scale (structure::noise_scale)
+//! ```
+//!
+//! so the planes of another surface (across a crease, behind a thin wall, of a distant surface
+//! under an isolated point) lose their vote instead of dragging the point. The summed quadric is
+//! minimised with the damped solve, and the point's total displacement from where the run found it
+//! is clamped to `STEP · s_i` (and to `--max-move`): no point moves farther than the noise its
+//! neighbourhood shows. Scatter, sparse and degenerate points do not move.
+
+use glam::DVec3;
+use rayon::prelude::*;
+
+use super::Params;
+use super::qem::stay;
+use super::structure::{LocalFit, Structure};
+use crate::geometry::{Quadric, SymMat3};
+use crate::neighbours::Neighbourhoods;
+
+/// Width of the agreement weight in units of the voter's noise scale.
+pub const AGREE: f64 = 2.0;
+/// Largest total displacement in units of the point's noise scale.
+pub const STEP: f64 = 3.0;
+
+/// Cosine of the largest angle between a point's normal and a neighbour's for which the
+/// neighbour's plane uses the bisecting normal (25°), as in [`super::qem::bent_quadric`].
+const BEND_COS: f64 = 0.906_307_787_036_649_9;
+
+/// What the guarded step reads, per point, besides positions.
+#[derive(Debug, Clone, Copy)]
+pub struct Guard<'a> {
+    /// Positions where the run started (the clamp's centre).
+    pub start: &'a [DVec3],
+    /// Filtered unit normals (zero for points that take no plane).
+    pub normals: &'a [DVec3],
+    /// Own fits (the line axes).
+    pub fits: &'a [LocalFit],
+    /// Classes.
+    pub classes: &'a [Structure],
+    /// Noise scales.
+    pub noise: &'a [f64],
+    /// The user's hard cap on any displacement, if any.
+    pub max_move: Option<f64>,
+}
+
+/// Adds the quadric of the squared distance to the line through `p` along unit `d`.
+#[inline]
+fn add_line(q: &mut Quadric, d: DVec3, p: DVec3, weight: f64) {
+    // A = I − d dᵀ; the distance² of w is (w − p)ᵀA(w − p).
+    let mut a = SymMat3::scaled_identity(1.0);
+    a.add_outer(d, -1.0);
+    let ap = a.mul_vec(p);
+    let mut wa = a;
+    wa.0.iter_mut().for_each(|x| *x *= weight);
+    q.a.add(&wa);
+    q.b -= weight * ap;
+    q.c += weight * p.dot(ap);
+}
+
+/// The agreement weight of a residual `r` against a voter of noise scale `s`.
+#[inline]
+fn agree(r: f64, s: f64) -> f64 {
+    if s <= 0.0 {
+        // A noise-free voter agrees only exactly.
+        return if r == 0.0 { 1.0 } else { 0.0 };
+    }
+    let t = r / (AGREE * s);
+    (-0.5 * t * t).exp()
+}
+
+/// The robust quadric of point `i` (relative to its position).
+fn quadric(pos: &[DVec3], g: &Guard, lists: &Neighbourhoods, i: usize) -> Quadric {
+    let v = pos[i];
+    let mut q = Quadric::ZERO;
+    match g.classes[i] {
+        Structure::Line => {
+            for &u in lists.get(i) {
+                let u = u as usize;
+                if g.classes[u] != Structure::Line {
+                    continue;
+                }
+                let d = g.fits[u].axis;
+                let p = pos[u] - v;
+                let r = (p - d * d.dot(p)).length();
+                let w = agree(r, g.noise[u]);
+                if w > 0.0 {
+                    add_line(&mut q, d, p, w);
+                }
+            }
+        }
+        _ => {
+            let ni = g.normals[i];
+            for &u in lists.get(i) {
+                let u = u as usize;
+                let mut nu = g.normals[u];
+                if nu == DVec3::ZERO || !g.classes[u].takes_planes() {
+                    continue;
+                }
+                if nu.dot(ni) < 0.0 {
+                    nu = -nu;
+                }
+                let n = if ni != DVec3::ZERO && ni.dot(nu) > BEND_COS {
+                    (ni + nu).normalize()
+                } else {
+                    nu
+                };
+                let p = pos[u] - v;
+                let w = agree(n.dot(p).abs(), g.noise[u]);
+                if w > 0.0 {
+                    q.add_plane(n, p, w);
+                }
+            }
+        }
+    }
+    q
+}
+
+/// One guarded pass over every point: the new position and why it stayed or was clamped
+/// ([`stay`] flags).
+pub fn step(pos: &[DVec3], lists: &Neighbourhoods, g: &Guard, params: &Params) -> Vec<(DVec3, u8)> {
+    (0..pos.len())
+        .into_par_iter()
+        .with_min_len(1024)
+        .map(|i| {
+            let v = pos[i];
+            if !v.is_finite() || !g.classes[i].moves() {
+                return (v, 0);
+            }
+            let mut bound = STEP * g.noise[i];
+            if let Some(m) = g.max_move {
+                bound = bound.min(m);
+            }
+            if bound <= 0.0 {
+                return (v, 0);
+            }
+            let q = quadric(pos, g, lists, i);
+            let Some(w) = params.solver_for(q.a.trace()).offset(&q) else {
+                return (v, stay::SINGULAR);
+            };
+            clamp(g.start[i], v + w, bound)
+        })
+        .collect()
+}
+
+/// `p` pulled back into the ball of radius `bound` around `centre`, with [`stay::BOUNDED`] when
+/// it had to be.
+#[inline]
+pub fn clamp(centre: DVec3, p: DVec3, bound: f64) -> (DVec3, u8) {
+    let d = p - centre;
+    let len = d.length();
+    if len <= bound {
+        (p, 0)
+    } else {
+        (centre + d * (bound / len), stay::BOUNDED)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_line_quadric_is_the_squared_distance_to_the_line() {
+        let mut q = Quadric::ZERO;
+        let d = DVec3::new(1.0, 1.0, 0.0).normalize();
+        let p = DVec3::new(0.0, 0.0, 1.0);
+        add_line(&mut q, d, p, 2.0);
+        for w in [DVec3::ZERO, DVec3::new(3.0, -1.0, 2.0), p + 5.0 * d] {
+            let r = (w - p) - d * d.dot(w - p);
+            assert!((q.eval(w) - 2.0 * r.length_squared()).abs() < 1e-12);
+        }
+    }
+
+    #[test]
+    fn clamping_keeps_the_direction_and_the_bound() {
+        let (p, f) = clamp(DVec3::ZERO, DVec3::new(3.0, 4.0, 0.0), 1.0);
+        assert!((p - DVec3::new(0.6, 0.8, 0.0)).length() < 1e-15);
+        assert_eq!(f, stay::BOUNDED);
+        assert_eq!(clamp(DVec3::ZERO, DVec3::X, 2.0), (DVec3::X, 0));
+    }
+}

@@ -1,0 +1,316 @@
+//! What a point's neighbourhood is: surface, edge, line, scatter or too sparse, from the k-NN
+//! list's principal axes, and the local noise scale that bounds every step.
+//!
+//! # Brief overview
+//!
+//! Real scans are not dense manifold surfaces everywhere: vegetation is volumetric scatter, wires
+//! and poles are lines, mobile LiDAR lists run along one scan ring, far-range returns are sparse.
+//! The quadric step is only earned where the neighbourhood shows a surface (or a line), so each
+//! point gets a [`Structure`] from the eigenvalues `λ0 ≤ λ1 ≤ λ2` of its list's covariance:
+//!
+//! ```text
+//!   λ1 ≤ LINE·λ2                        → Line     (wire, pole edge, one scan ring)
+//!   λ0 ≤ SURFACE·(λ0+λ1+λ2)             → Surface  (plane-fit residual small against the spread)
+//!   else, most list members Surface     → Edge     (a crease or corner between surfaces)
+//!   else                                → Scatter  (vegetation, multipath, noise clouds)
+//!   own radius ≥ SPARSE × members' median radius → Sparse (isolated points, far stragglers)
+//!   all points coincident or < 3 points → Degenerate
+//! ```
+//!
+//! The noise scale `s` of a point is the RMS distance of its neighbourhood to its own fitted plane
+//! (`√(λ0/n)`), or to its own fitted line for lines (`√((λ0+λ1)/n)`); [`noise_scale`] takes the
+//! median over the Surface and Line members of a point's list, so an edge point borrows the noise
+//! level of the faces around it instead of its own (large) two-plane residual.
+//!
+//! Every function here is a pure function of a point's list, so tiles reproduce it exactly.
+
+use glam::DVec3;
+use rayon::prelude::*;
+
+use crate::geometry::{PcaFit, pca_fit};
+use crate::neighbours::Neighbourhoods;
+
+/// Largest `λ1/λ2` of a line.
+pub const LINE: f64 = 0.02;
+/// Largest surface variation `λ0/(λ0+λ1+λ2)` of a surface.
+pub const SURFACE: f64 = 0.06;
+/// Smallest ratio of a point's own k-NN radius to the median radius of its list members for
+/// which it counts as sparse (isolated from the surface its list lies on).
+pub const SPARSE: f64 = 3.0;
+
+/// The kind of neighbourhood around a point.
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, serde::Serialize, serde::Deserialize,
+)]
+#[serde(rename_all = "lowercase")]
+#[repr(u8)]
+pub enum Structure {
+    /// A surface: the plane fit leaves a small residual.
+    Surface = 0,
+    /// A crease or corner: the list mostly holds surface points, the fit does not.
+    Edge = 1,
+    /// A line: wires, poles, one ring of a mobile scan.
+    Line = 2,
+    /// Volumetric scatter: vegetation, multipath, noise clouds; never moved.
+    Scatter = 3,
+    /// Isolated from its list: never moved.
+    Sparse = 4,
+    /// Coincident points or fewer than three: never moved.
+    Degenerate = 5,
+}
+
+impl Structure {
+    /// Every class, in code order.
+    pub const ALL: [Structure; 6] = [
+        Structure::Surface,
+        Structure::Edge,
+        Structure::Line,
+        Structure::Scatter,
+        Structure::Sparse,
+        Structure::Degenerate,
+    ];
+
+    /// The lowercase name used in reports and written fields.
+    pub fn name(self) -> &'static str {
+        match self {
+            Structure::Surface => "surface",
+            Structure::Edge => "edge",
+            Structure::Line => "line",
+            Structure::Scatter => "scatter",
+            Structure::Sparse => "sparse",
+            Structure::Degenerate => "degenerate",
+        }
+    }
+
+    /// True for the classes that take a plane step (surfaces and edges).
+    pub fn takes_planes(self) -> bool {
+        matches!(self, Structure::Surface | Structure::Edge)
+    }
+
+    /// True for the classes that move at all.
+    pub fn moves(self) -> bool {
+        matches!(self, Structure::Surface | Structure::Edge | Structure::Line)
+    }
+}
+
+/// A point's fit: its class before the edge test, its plane normal, line direction and noise.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LocalFit {
+    /// Class from the point's own fit ([`Structure::Edge`] is decided later by [`classify`]).
+    pub own: Structure,
+    /// Unit plane normal (zero without a plane).
+    pub normal: DVec3,
+    /// Unit line direction (zero without one).
+    pub axis: DVec3,
+    /// RMS distance of the list to the fitted plane (to the line for lines).
+    pub residual: f64,
+}
+
+/// The fit of one list from its PCA.
+fn fit_of(f: Option<PcaFit>) -> LocalFit {
+    let none = LocalFit {
+        own: Structure::Degenerate,
+        normal: DVec3::ZERO,
+        axis: DVec3::ZERO,
+        residual: 0.0,
+    };
+    let Some(f) = f else { return none };
+    if !f.has_axis() {
+        return none;
+    }
+    let [l0, l1, l2] = f.values.map(|v| v.max(0.0));
+    let n = f.count as f64;
+    let normal = if f.has_plane() {
+        f.vectors[0]
+    } else {
+        DVec3::ZERO
+    };
+    if l1 <= LINE * l2 {
+        return LocalFit {
+            own: Structure::Line,
+            normal,
+            axis: f.vectors[2],
+            residual: ((l0 + l1) / n).sqrt(),
+        };
+    }
+    let own = if l0 <= SURFACE * (l0 + l1 + l2) {
+        Structure::Surface
+    } else {
+        Structure::Scatter
+    };
+    LocalFit {
+        own,
+        normal,
+        axis: f.vectors[2],
+        residual: (l0 / n).sqrt(),
+    }
+}
+
+/// The own fit of every point over its list (coordinates relative to the point).
+pub fn local_fits(pos: &[DVec3], lists: &Neighbourhoods) -> Vec<LocalFit> {
+    (0..pos.len())
+        .into_par_iter()
+        .with_min_len(1024)
+        .map(|i| {
+            let v = pos[i];
+            if !v.is_finite() {
+                return fit_of(None);
+            }
+            fit_of(pca_fit(lists.get(i).iter().map(|&u| pos[u as usize] - v)))
+        })
+        .collect()
+}
+
+/// The median of `xs` (the upper one for even counts); 0 when empty. Reorders `xs`.
+fn median(xs: &mut [f64]) -> f64 {
+    if xs.is_empty() {
+        return 0.0;
+    }
+    let m = xs.len() / 2;
+    *xs.select_nth_unstable_by(m, f64::total_cmp).1
+}
+
+/// Final classes: [`Structure::Sparse`] for points whose own k-NN radius (`radii` squared) is at
+/// least [`SPARSE`] times the median of their list members', [`Structure::Edge`] for non-surface
+/// points whose list is mostly surface, the own class otherwise.
+pub fn classify(fits: &[LocalFit], lists: &Neighbourhoods, radii: &[f64]) -> Vec<Structure> {
+    (0..fits.len())
+        .into_par_iter()
+        .with_min_len(1024)
+        .map_init(Vec::new, |buf: &mut Vec<f64>, i| {
+            let own = fits[i].own;
+            if own == Structure::Degenerate {
+                return own;
+            }
+            let list = lists.get(i);
+            buf.clear();
+            buf.extend(
+                list.iter()
+                    .filter(|&&u| u as usize != i)
+                    .map(|&u| radii[u as usize]),
+            );
+            // Squared radii: compare with the square of the ratio.
+            if radii[i] >= SPARSE * SPARSE * median(buf) && radii[i] > 0.0 {
+                return Structure::Sparse;
+            }
+            if own != Structure::Scatter {
+                return own;
+            }
+            let surface = list
+                .iter()
+                .filter(|&&u| u as usize != i && fits[u as usize].own == Structure::Surface)
+                .count();
+            let others = list.iter().filter(|&&u| u as usize != i).count();
+            if others > 0 && 2 * surface > others {
+                Structure::Edge
+            } else {
+                Structure::Scatter
+            }
+        })
+        .collect()
+}
+
+/// The noise scale of every point: the median residual of the Surface and Line members of its
+/// list (the point itself included); 0 when it has none (such a point does not move).
+pub fn noise_scale(fits: &[LocalFit], lists: &Neighbourhoods) -> Vec<f64> {
+    (0..fits.len())
+        .into_par_iter()
+        .with_min_len(1024)
+        .map_init(Vec::new, |buf: &mut Vec<f64>, i| {
+            buf.clear();
+            buf.extend(
+                lists
+                    .get(i)
+                    .iter()
+                    .map(|&u| &fits[u as usize])
+                    .filter(|f| matches!(f.own, Structure::Surface | Structure::Line))
+                    .map(|f| f.residual),
+            );
+            median(buf)
+        })
+        .collect()
+}
+
+/// Points per class, indexed by the class code.
+pub fn counts(classes: &[Structure]) -> [u64; 6] {
+    let mut c = [0u64; 6];
+    for s in classes {
+        c[*s as usize] += 1;
+    }
+    c
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::neighbours::KnnIndex;
+
+    fn classes_of(pts: &[DVec3], k: usize) -> Vec<Structure> {
+        let index = KnnIndex::build(pts, DVec3::ZERO).unwrap();
+        let (lists, radii) = index.knn_all(k).unwrap();
+        let fits = local_fits(pts, &lists);
+        classify(&fits, &lists, &radii)
+    }
+
+    fn hash01(i: u64, salt: u64) -> f64 {
+        let mut x = i.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ salt;
+        x ^= x >> 31;
+        x = x.wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        x ^= x >> 29;
+        (x >> 11) as f64 / (1u64 << 53) as f64
+    }
+
+    #[test]
+    fn a_plane_a_line_and_a_scatter_cloud_are_told_apart() {
+        // A 30 × 30 grid plane, a line of 200 points, a uniform cube of 2000 points, far apart.
+        let mut pts = Vec::new();
+        for i in 0..30 {
+            for j in 0..30 {
+                pts.push(DVec3::new(i as f64, j as f64, 0.01 * hash01(i * 30 + j, 1)));
+            }
+        }
+        let plane = pts.len();
+        for i in 0..200 {
+            pts.push(DVec3::new(100.0 + 0.5 * i as f64, 0.0, 0.0));
+        }
+        let line = pts.len();
+        for i in 0..2000 {
+            pts.push(DVec3::new(
+                300.0 + 10.0 * hash01(i, 2),
+                10.0 * hash01(i, 3),
+                10.0 * hash01(i, 4),
+            ));
+        }
+        let c = classes_of(&pts, 16);
+        let surface = c[..plane]
+            .iter()
+            .filter(|s| **s == Structure::Surface)
+            .count();
+        assert!(surface as f64 > 0.95 * plane as f64, "{surface} of {plane}");
+        assert!(c[plane..line].iter().all(|s| *s == Structure::Line));
+        let scatter = c[line..]
+            .iter()
+            .filter(|s| **s == Structure::Scatter)
+            .count();
+        assert!(scatter as f64 > 0.9 * 2000.0, "{scatter} of 2000");
+    }
+
+    #[test]
+    fn an_isolated_point_is_sparse_and_coincident_points_degenerate() {
+        let mut pts = Vec::new();
+        for i in 0..20 {
+            for j in 0..20 {
+                pts.push(DVec3::new(i as f64, j as f64, 0.0));
+            }
+        }
+        pts.push(DVec3::new(10.0, 10.0, 50.0));
+        let c = classes_of(&pts, 16);
+        assert_eq!(c[400], Structure::Sparse);
+        let same = vec![DVec3::ONE; 20];
+        assert!(
+            classes_of(&same, 8)
+                .iter()
+                .all(|s| *s == Structure::Degenerate)
+        );
+    }
+}
