@@ -9,8 +9,10 @@
 //! point gets a [`Structure`] from the eigenvalues `λ0 ≤ λ1 ≤ λ2` of its list's covariance:
 //!
 //! ```text
-//!   λ1 ≤ LINE·λ2                        → Line     (wire, pole edge, one scan ring)
-//!   λ0 ≤ SURFACE·(λ0+λ1+λ2)             → Surface  (plane-fit residual small against the spread)
+//!   λ1 ≤ LINE·λ2, or λ1 ≤ ELONGATED·λ2
+//!     with a round section λ0 > ROUND·λ1 → Line    (wire, pole edge, one scan ring)
+//!   λ0 ≤ SURFACE·(λ0+λ1+λ2), λ0 ≤ FLAT·λ1 → Surface (plane-fit residual small against the spread
+//!                                                  in both tangent directions)
 //!   else, most list members Surface     → Edge     (a crease or corner between surfaces)
 //!   else                                → Scatter  (vegetation, multipath, noise clouds)
 //!   own radius ≥ SPARSE × members' median radius → Sparse (isolated points, far stragglers)
@@ -32,8 +34,16 @@ use crate::neighbours::Neighbourhoods;
 
 /// Largest `λ1/λ2` of a line.
 pub const LINE: f64 = 0.02;
+/// Largest `λ1/λ2` of an elongated neighbourhood whose round cross-section
+/// (`λ0 > ROUND·λ1`) makes it a line too: a thick wire, a pole, a noisy scan ring.
+pub const ELONGATED: f64 = 0.1;
+/// Smallest `λ0/λ1` of a round cross-section.
+pub const ROUND: f64 = 0.25;
 /// Largest surface variation `λ0/(λ0+λ1+λ2)` of a surface.
 pub const SURFACE: f64 = 0.06;
+/// Largest `λ0/λ1` of a surface: the spread across the normal must be well below the spread in
+/// the second tangent direction, or the normal is the noise's, not the surface's.
+pub const FLAT: f64 = 0.25;
 /// Smallest ratio of a point's own k-NN radius to the median radius of its list members for
 /// which it counts as sparse (isolated from the surface its list lies on).
 pub const SPARSE: f64 = 3.0;
@@ -125,7 +135,7 @@ fn fit_of(f: Option<PcaFit>) -> LocalFit {
     } else {
         DVec3::ZERO
     };
-    if l1 <= LINE * l2 {
+    if l1 <= LINE * l2 || (l1 <= ELONGATED * l2 && l0 > ROUND * l1) {
         return LocalFit {
             own: Structure::Line,
             normal,
@@ -133,7 +143,7 @@ fn fit_of(f: Option<PcaFit>) -> LocalFit {
             residual: ((l0 + l1) / n).sqrt(),
         };
     }
-    let own = if l0 <= SURFACE * (l0 + l1 + l2) {
+    let own = if l0 <= SURFACE * (l0 + l1 + l2) && l0 <= FLAT * l1 {
         Structure::Surface
     } else {
         Structure::Scatter

@@ -390,10 +390,12 @@ pub fn noise_removed(
     })
 }
 
-/// The median distance from a point to its nearest other point (the protocol's noise unit).
+/// The median distance from a point to its nearest other point (the protocol's noise unit), where
+/// exact duplicates are skipped: a point's spacing is the distance to its nearest point at a
+/// non-zero distance among its 8 nearest (some scans store every point twice).
 ///
 /// # Errors
-/// Fewer than two finite points.
+/// Fewer than two distinct finite points.
 pub fn median_spacing(positions: &[DVec3]) -> Result<f64, EvalError> {
     let (pts, _) = finite(positions);
     if pts.len() < 2 {
@@ -403,9 +405,26 @@ pub fn median_spacing(positions: &[DVec3]) -> Result<f64, EvalError> {
         });
     }
     let index = KnnIndex::build(&pts, crate::denoise::origin_of(&pts))?;
-    let (_, mut r2) = index.knn_all(2)?;
-    let m = r2.len() / 2;
-    Ok(r2.select_nth_unstable_by(m, f64::total_cmp).1.sqrt())
+    // The nearest point at a non-zero distance among the 8 nearest (duplicates come first).
+    let (lists, _) = index.knn_all(8)?;
+    let mut d: Vec<f64> = (0..pts.len())
+        .filter_map(|i| {
+            lists
+                .get(i)
+                .iter()
+                .map(|&u| index.dist2(i, u as usize))
+                .find(|&x| x > 0.0)
+        })
+        .map(f64::sqrt)
+        .collect();
+    if d.is_empty() {
+        return Err(EvalError::Empty {
+            what: "cloud",
+            detail: "every point duplicates another".into(),
+        });
+    }
+    let m = d.len() / 2;
+    Ok(*d.select_nth_unstable_by(m, f64::total_cmp).1)
 }
 
 #[cfg(test)]
