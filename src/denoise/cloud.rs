@@ -47,11 +47,95 @@ pub struct Globals {
     /// Mean distance from a point to its nearest other point (the point-cloud L); the bilateral
     /// σc. Zero when the method does not need it.
     pub spacing: f64,
+    /// The sensor's noise: the median over all points of [`super::structure::LocalFit::near`]
+    /// (the RMS residual of the plane through a point's nearest 8), read as the upper edge of its
+    /// 2 % histogram bin. It caps every guarded step (one scan, one sensor, one noise level, so a
+    /// coarse far-range neighbourhood cannot license a step of its own coarse scale). Zero when
+    /// the method does not need it.
+    #[serde(default)]
+    pub noise: f64,
+}
+
+/// The mergeable parts behind [`Globals`]: partial sums over some points (a tile's owned ones).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct GlobalsPartial {
+    /// Nearest-other distances (bilateral).
+    pub spacing: ExactSum,
+    /// Small-scale residuals (the guarded operator).
+    pub noise: super::Displacements,
+}
+
+impl GlobalsPartial {
+    /// Adds another partial.
+    pub fn merge(&mut self, o: &GlobalsPartial) {
+        self.spacing.merge(&o.spacing);
+        self.noise.merge(&o.noise);
+    }
+
+    /// The global scalars.
+    pub fn finish(&self) -> Globals {
+        Globals {
+            spacing: if self.spacing.count() > 0 {
+                self.spacing.mean()
+            } else {
+                0.0
+            },
+            noise: self.noise.quantile(0.5),
+        }
+    }
 }
 
 /// True when `params` need [`Globals`] (a pre-pass over the whole cloud).
 pub fn needs_globals(params: &Params) -> bool {
-    params.method == Method::Bilateral
+    params.method == Method::Bilateral || guarded_qem(params)
+}
+
+/// True when `params` run the guarded QEM operator.
+fn guarded_qem(params: &Params) -> bool {
+    params.method == Method::Qem && params.guard
+}
+
+/// The partials behind [`Globals`] over the points `counted` selects, and for each point whether
+/// its contribution is exact (its k-NN ball inside the region).
+///
+/// # Errors
+/// Fewer than two points.
+pub fn globals_partial(
+    run: &CloudRun,
+    params: &Params,
+    counted: impl Fn(usize) -> bool,
+) -> Result<(GlobalsPartial, Vec<bool>), DenoiseError> {
+    let k = if guarded_qem(params) {
+        super::structure::NEAR
+    } else {
+        2
+    };
+    let (frame, lists, radii, index) = graph(run, k)?;
+    let exact_f = taint(run.region.as_ref(), &frame.positions, &lists, &radii, 0);
+    let near = if guarded_qem(params) {
+        super::structure::near_residuals(&frame.positions, &lists)
+    } else {
+        Vec::new()
+    };
+    let mut exact = vec![false; run.positions.len()];
+    let mut part = GlobalsPartial::default();
+    for (j, &i) in frame.order.iter().enumerate() {
+        let i = i as usize;
+        exact[i] = !exact_f[j];
+        if !counted(i) {
+            continue;
+        }
+        if params.method == Method::Bilateral
+            && let Some(&u) = lists.get(j).iter().find(|&&u| u as usize != j)
+        {
+            part.spacing.add(index.dist2(j, u as usize).sqrt());
+        }
+        if let Some(&r) = near.get(j) {
+            part.noise.add(r);
+        }
+    }
+    part.noise.refresh();
+    Ok((part, exact))
 }
 
 /// Number of k-NN graph hops a result depends on (see the module overview).
@@ -173,31 +257,6 @@ fn taint(
     t
 }
 
-/// The partial sum behind [`Globals::spacing`] over the points `counted` selects, and for each
-/// point whether its nearest-other distance is exact (its 2-NN ball inside the region).
-///
-/// # Errors
-/// Fewer than two points.
-pub fn spacing_partial(
-    run: &CloudRun,
-    counted: impl Fn(usize) -> bool,
-) -> Result<(ExactSum, Vec<bool>), DenoiseError> {
-    let (frame, lists, radii, index) = graph(run, 2)?;
-    let exact_f = taint(run.region.as_ref(), &frame.positions, &lists, &radii, 0);
-    let mut exact = vec![false; run.positions.len()];
-    let mut sum = ExactSum::new();
-    for (j, &i) in frame.order.iter().enumerate() {
-        let i = i as usize;
-        exact[i] = !exact_f[j];
-        if counted(i)
-            && let Some(&u) = lists.get(j).iter().find(|&&u| u as usize != j)
-        {
-            sum.add(index.dist2(j, u as usize).sqrt());
-        }
-    }
-    Ok((sum, exact))
-}
-
 /// Runs the point operator of `params` on `run`.
 ///
 /// # Errors
@@ -261,6 +320,10 @@ pub fn run(
             let fits = local_fits(&cur, &lists);
             let classes = classify(&fits, &lists, &radii);
             let noise = noise_scale(&fits, &lists);
+            let bound: Vec<f64> = noise
+                .iter()
+                .map(|&s| s.min(guarded::GLOBAL * globals.noise))
+                .collect();
             if pass == 0 {
                 for (d, c) in degenerate.iter_mut().zip(&classes) {
                     *d = *c == Structure::Degenerate;
@@ -293,6 +356,7 @@ pub fn run(
                 fits: &fits,
                 classes: &classes,
                 noise: &noise,
+                bound: &bound,
                 max_move: params.max_move,
             };
             for _ in 0..sched.updates {
@@ -373,10 +437,7 @@ pub fn run_all(positions: &[DVec3], params: &Params) -> Result<super::Output, De
     };
     let mut timer = Timer::start();
     let globals = if needs_globals(params) {
-        let (sum, _) = spacing_partial(&r, |_| true)?;
-        Globals {
-            spacing: sum.mean(),
-        }
+        globals_partial(&r, params, |_| true)?.0.finish()
     } else {
         Globals::default()
     };

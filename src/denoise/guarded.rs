@@ -34,6 +34,8 @@ use crate::neighbours::Neighbourhoods;
 pub const AGREE: f64 = 2.0;
 /// Largest total displacement in units of the point's noise scale.
 pub const STEP: f64 = 3.0;
+/// Cap of a point's noise scale in units of the scan's global noise ([`super::cloud::Globals`]).
+pub const GLOBAL: f64 = 1.0;
 
 /// Cosine of the largest angle between a point's normal and a neighbour's for which the
 /// neighbour's plane uses the bisecting normal (25°), as in [`super::qem::bent_quadric`].
@@ -52,6 +54,8 @@ pub struct Guard<'a> {
     pub classes: &'a [Structure],
     /// Noise scales.
     pub noise: &'a [f64],
+    /// Noise scales of the step bound: the noise scale capped by the scan's.
+    pub bound: &'a [f64],
     /// The user's hard cap on any displacement, if any.
     pub max_move: Option<f64>,
 }
@@ -139,7 +143,7 @@ pub fn step(pos: &[DVec3], lists: &Neighbourhoods, g: &Guard, params: &Params) -
             if !v.is_finite() || !g.classes[i].moves() {
                 return (v, 0);
             }
-            let mut bound = STEP * g.noise[i];
+            let mut bound = STEP * g.bound[i];
             if let Some(m) = g.max_move {
                 bound = bound.min(m);
             }

@@ -114,7 +114,13 @@ pub struct LocalFit {
     pub axis: DVec3,
     /// RMS distance of the list to the fitted plane (to the line for lines).
     pub residual: f64,
+    /// RMS distance of the nearest [`NEAR`] points to their own plane: the noise at the smallest
+    /// scale, where real detail adds least.
+    pub near: f64,
 }
+
+/// Points of the small-scale fit behind [`LocalFit::near`], the point itself included.
+pub const NEAR: usize = 8;
 
 /// The fit of one list from its PCA.
 fn fit_of(f: Option<PcaFit>) -> LocalFit {
@@ -123,6 +129,7 @@ fn fit_of(f: Option<PcaFit>) -> LocalFit {
         normal: DVec3::ZERO,
         axis: DVec3::ZERO,
         residual: 0.0,
+        near: 0.0,
     };
     let Some(f) = f else { return none };
     if !f.has_axis() {
@@ -141,6 +148,7 @@ fn fit_of(f: Option<PcaFit>) -> LocalFit {
             normal,
             axis: f.vectors[2],
             residual: ((l0 + l1) / n).sqrt(),
+            near: 0.0,
         };
     }
     let own = if l0 <= SURFACE * (l0 + l1 + l2) && l0 <= FLAT * l1 {
@@ -153,6 +161,7 @@ fn fit_of(f: Option<PcaFit>) -> LocalFit {
         normal,
         axis: f.vectors[2],
         residual: (l0 / n).sqrt(),
+        near: 0.0,
     }
 }
 
@@ -166,7 +175,10 @@ pub fn local_fits(pos: &[DVec3], lists: &Neighbourhoods) -> Vec<LocalFit> {
             if !v.is_finite() {
                 return fit_of(None);
             }
-            fit_of(pca_fit(lists.get(i).iter().map(|&u| pos[u as usize] - v)))
+            let list = lists.get(i);
+            let mut fit = fit_of(pca_fit(list.iter().map(|&u| pos[u as usize] - v)));
+            fit.near = near_residual(pos, list, i);
+            fit
         })
         .collect()
 }
@@ -237,6 +249,30 @@ pub fn noise_scale(fits: &[LocalFit], lists: &Neighbourhoods) -> Vec<f64> {
                     .map(|f| f.residual),
             );
             median(buf)
+        })
+        .collect()
+}
+
+/// [`LocalFit::near`] of point `i` from its list (sorted by distance, itself first).
+#[inline]
+fn near_residual(pos: &[DVec3], list: &[u32], i: usize) -> f64 {
+    let v = pos[i];
+    let near = &list[..list.len().min(NEAR)];
+    pca_fit(near.iter().map(|&u| pos[u as usize] - v))
+        .map_or(0.0, |f| (f.values[0].max(0.0) / f.count as f64).sqrt())
+}
+
+/// [`LocalFit::near`] of every finite point (0 for the others) from lists of at least [`NEAR`].
+pub fn near_residuals(pos: &[DVec3], lists: &Neighbourhoods) -> Vec<f64> {
+    (0..pos.len())
+        .into_par_iter()
+        .with_min_len(1024)
+        .map(|i| {
+            if pos[i].is_finite() {
+                near_residual(pos, lists.get(i), i)
+            } else {
+                0.0
+            }
         })
         .collect()
 }

@@ -494,10 +494,10 @@ fn run_points_in_memory(job: &Job, opts: &RunOptions) -> Result<Report, Pipeline
     };
     opts.progress.phase("denoise", 1);
     let globals = if cloud::needs_globals(&job.params) {
-        let (sum, _) = cloud::spacing_partial(&run, |_| true).map_err(denoise_err)?;
-        Globals {
-            spacing: sum.mean(),
-        }
+        cloud::globals_partial(&run, &job.params, |_| true)
+            .map_err(denoise_err)?
+            .0
+            .finish()
     } else {
         Globals::default()
     };
@@ -803,15 +803,15 @@ fn run_tiled(
         g
     } else {
         opts.progress.phase("globals", plan.tiles.len() as u64);
-        let mut sum = ExactSum::new();
+        let mut sum = cloud::GlobalsPartial::default();
         for t in 0..plan.tiles.len() {
             cancelled(opts)?;
-            sum.merge(&tiling::spacing_of_tile(dir.path(), &plan, t).map_err(tiling_err)?);
+            sum.merge(
+                &tiling::globals_of_tile(dir.path(), &plan, t, &job.params).map_err(tiling_err)?,
+            );
             opts.progress.advance(t as u64 + 1);
         }
-        let g = Globals {
-            spacing: sum.mean(),
-        };
+        let g = sum.finish();
         save_json(&globals_path, &g)?;
         g
     };

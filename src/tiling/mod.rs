@@ -28,7 +28,7 @@ use std::path::{Path, PathBuf};
 use glam::DVec3;
 use thiserror::Error;
 
-use crate::denoise::cloud::{self, CloudRun, Globals};
+use crate::denoise::cloud::{self, CloudRun, Globals, GlobalsPartial};
 use crate::denoise::{DenoiseError, Params, Stats};
 use crate::geometry::ExactSum;
 use crate::io::IoError;
@@ -184,20 +184,24 @@ fn with_exact_halo<T>(
     }
 }
 
-/// The exact partial sum of the nearest-other-point distance over tile `t`'s owned points (the
-/// pre-pass behind [`Globals::spacing`]).
+/// The exact partials behind [`Globals`] over tile `t`'s owned points (the pre-pass).
 ///
 /// # Errors
 /// Spill read failures, too few points, halo limit.
-pub fn spacing_of_tile(dir: &Path, plan: &Plan, t: usize) -> Result<ExactSum, TilingError> {
+pub fn globals_of_tile(
+    dir: &Path,
+    plan: &Plan,
+    t: usize,
+    params: &Params,
+) -> Result<GlobalsPartial, TilingError> {
     let (sum, _, _, _) = with_exact_halo(dir, plan, t, None, |pts, run| {
         if pts.is_empty() {
-            return Ok((ExactSum::new(), true));
+            return Ok((GlobalsPartial::default(), true));
         }
-        if pts.len() < 2 {
-            return Ok((ExactSum::new(), false));
+        if pts.len() < crate::denoise::structure::NEAR {
+            return Ok((GlobalsPartial::default(), false));
         }
-        let (sum, exact) = cloud::spacing_partial(run, |i| pts[i].owned)
+        let (sum, exact) = cloud::globals_partial(run, params, |i| pts[i].owned)
             .map_err(|e| TilingError::Denoise { tile: t, error: e })?;
         let ok = pts.iter().zip(&exact).all(|(p, e)| !p.owned || *e);
         Ok((sum, ok))
