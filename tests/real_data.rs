@@ -128,3 +128,43 @@ fn tiled_equals_in_memory_on_real_scans() {
         );
     }
 }
+
+/// Issue 9: the default operator does no harm on real scans: no point of any class moves more
+/// than 0.6 of its own 16-NN radius, and the 99th percentile of every class with at least 100
+/// points stays at or below 0.35 (the protocol's goal is 0.3; docs/quality/real-scans.md has the
+/// figures per class).
+#[test]
+#[ignore = "needs ../shared"]
+fn issue9_default_does_no_harm_on_real_scans() {
+    use qem_denoise::eval::scans::{classes_of, harm};
+    let dir = tempfile::tempdir().unwrap();
+    for input in files() {
+        let name = input.file_name().unwrap().to_string_lossy().into_owned();
+        // The range scans of the bunny are one object ten times over; two keep the test short.
+        if name.starts_with("bun") && !name.starts_with("bun000") && !name.starts_with("bun180") {
+            continue;
+        }
+        let out = out_path(dir.path(), &input, "harm");
+        denoise(&input, &out, None, OutlierMode::Off);
+        let before = Cloud::read(&input, None).unwrap();
+        let after = Cloud::read(&out, None).unwrap();
+        let classes = classes_of(&before).unwrap();
+        let h = harm(&before, &after, &classes).unwrap();
+        for r in &h.rows {
+            assert!(
+                r.relative.max <= 0.6,
+                "{name}: class {} moves a point {:.3} × r16",
+                r.name,
+                r.relative.max
+            );
+            if r.count >= 100 {
+                assert!(
+                    r.relative.p99 <= 0.35,
+                    "{name}: class {} p99 {:.3} × r16",
+                    r.name,
+                    r.relative.p99
+                );
+            }
+        }
+    }
+}

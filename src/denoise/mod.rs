@@ -379,11 +379,24 @@ pub fn denoise(
             if let Some(i) = positions.iter().position(|p| !p.is_finite()) {
                 return Err(DenoiseError::NonFiniteVertex { index: i });
             }
-            match (params.method, params.planes) {
+            let mut out = match (params.method, params.planes) {
                 (Method::Qem, Planes::Tangent) => qem::mesh(positions, f, params),
                 (Method::Qem, Planes::Face) => filtered::mesh(positions, f, params),
                 (Method::Bilateral, _) => bilateral::mesh(positions, f, params),
+            }?;
+            if let Some(m) = params.max_move {
+                let mut moves = Displacements::default();
+                for (p, &p0) in out.positions.iter_mut().zip(positions) {
+                    let (q, flag) = guarded::clamp(p0, *p, m);
+                    *p = q;
+                    out.stats.bounded += u64::from(flag != 0);
+                    moves.add((q - p0).length());
+                }
+                moves.refresh();
+                out.stats.max_step = moves.max;
+                out.stats.displacement = moves;
             }
+            Ok(out)
         }
         _ => cloud::run_all(positions, params),
     }
