@@ -331,12 +331,22 @@ fn issue_3_isolated_point_does_not_jump_onto_a_distant_surface() {
         }
     }
     pts.push(DVec3::new(50.0, 50.0, 50.0));
+    // The guarded default classifies it as sparse and leaves it (issue 9).
     let out = denoise(&pts, None, &Params::default()).unwrap();
+    assert_eq!(out.positions[100], DVec3::new(50.0, 50.0, 50.0));
+    assert_eq!(out.stats.structure.sparse, 1);
+    // Without the guard the step bound refuses the jump.
+    let unguarded = Params {
+        guard: false,
+        ..Params::default()
+    };
+    let out = denoise(&pts, None, &unguarded).unwrap();
     assert_eq!(out.positions[100], DVec3::new(50.0, 50.0, 50.0));
     assert_eq!(out.stats.far, 1);
     // The paper's plain solve keeps its exact definition (no bound).
     let plain = Params {
         solve: SolveKind::Plain,
+        guard: false,
         ..Params::default()
     };
     let out = denoise(&pts, None, &plain).unwrap();

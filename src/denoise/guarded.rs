@@ -17,9 +17,11 @@
 //!
 //! so the planes of another surface (across a crease, behind a thin wall, of a distant surface
 //! under an isolated point) lose their vote instead of dragging the point. The summed quadric is
-//! minimised with the damped solve, and the point's total displacement from where the run found it
-//! is clamped to `STEP · s_i` (and to `--max-move`): no point moves farther than the noise its
-//! neighbourhood shows. Scatter, sparse and degenerate points do not move.
+//! minimised with the damped solve. Where the neighbourhood is rougher than the scan's noise
+//! (`s_i > g`, `g` the global noise of [`super::cloud::Globals`]) the step is scaled by the Wiener
+//! gain `(g / s_i)²`, the share of the local spread the noise explains. The point's total
+//! displacement from where the run found it is clamped to `STEP · min(s_i, g)` (and to
+//! `--max-move`): no point moves farther than the noise its neighbourhood shows. Scatter, sparse and degenerate points do not move.
 
 use glam::DVec3;
 use rayon::prelude::*;
@@ -154,7 +156,14 @@ pub fn step(pos: &[DVec3], lists: &Neighbourhoods, g: &Guard, params: &Params) -
             let Some(w) = params.solver_for(q.a.trace()).offset(&q) else {
                 return (v, stay::SINGULAR);
             };
-            clamp(g.start[i], v + w, bound)
+            // Wiener gain: the share of the local spread the scan's noise explains. A rough
+            // neighbourhood (vegetation, fine detail, coarse far range) moves by that share only.
+            let gain = if g.noise[i] > g.bound[i] {
+                (g.bound[i] / g.noise[i]).powi(2)
+            } else {
+                1.0
+            };
+            clamp(g.start[i], v + w * gain, bound)
         })
         .collect()
 }

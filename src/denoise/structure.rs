@@ -19,8 +19,9 @@
 //!   all points coincident or < 3 points → Degenerate
 //! ```
 //!
-//! The noise scale `s` of a point is the RMS distance of its neighbourhood to its own fitted plane
-//! (`√(λ0/n)`), or to its own fitted line for lines (`√((λ0+λ1)/n)`); [`noise_scale`] takes the
+//! The noise scale `s` of a point is the distance of its neighbourhood to its own fitted plane
+//! (`√(λ0/(n−3))`, the plane taking three degrees of freedom, so that lists of 8 and 16 estimate
+//! the same σ), or the RMS distance to its own fitted line for lines (`√((λ0+λ1)/n)`); [`noise_scale`] takes the
 //! median over the Surface and Line members of a point's list, so an edge point borrows the noise
 //! level of the faces around it instead of its own (large) two-plane residual.
 //!
@@ -160,7 +161,7 @@ fn fit_of(f: Option<PcaFit>) -> LocalFit {
         own,
         normal,
         axis: f.vectors[2],
-        residual: (l0 / n).sqrt(),
+        residual: (l0 / (n - 3.0).max(1.0)).sqrt(),
         near: 0.0,
     }
 }
@@ -258,8 +259,9 @@ pub fn noise_scale(fits: &[LocalFit], lists: &Neighbourhoods) -> Vec<f64> {
 fn near_residual(pos: &[DVec3], list: &[u32], i: usize) -> f64 {
     let v = pos[i];
     let near = &list[..list.len().min(NEAR)];
-    pca_fit(near.iter().map(|&u| pos[u as usize] - v))
-        .map_or(0.0, |f| (f.values[0].max(0.0) / f.count as f64).sqrt())
+    pca_fit(near.iter().map(|&u| pos[u as usize] - v)).map_or(0.0, |f| {
+        (f.values[0].max(0.0) / (f.count as f64 - 3.0).max(1.0)).sqrt()
+    })
 }
 
 /// [`LocalFit::near`] of every finite point (0 for the others) from lists of at least [`NEAR`].

@@ -449,9 +449,10 @@ mod tests {
         let all = h.rows.last().unwrap();
         assert_eq!(all.count, 100);
         assert_eq!(all.absolute.max, 1.0);
-        // The 16-NN radius of an interior grid point is 2 (the 16th nearest, itself counted).
+        // The 16-NN radius of an interior grid point is √5 (itself, 4 at 1, 4 at √2, 4 at 2, then
+        // 8 at √5).
         assert!(
-            (all.relative.max - 0.5).abs() < 1e-12,
+            (all.relative.max - 1.0 / 5f64.sqrt()).abs() < 1e-12,
             "{}",
             all.relative.max
         );
