@@ -34,6 +34,7 @@ import json
 import os
 import re
 import signal
+import struct
 import subprocess
 import sys
 import time
@@ -162,6 +163,91 @@ def timed(cmd, timeout):
     return "ok", wall, out, ""
 
 
+def lzf_decompress(data, size):
+    """LZF (liblzf's format, as PCD's binary_compressed uses it)."""
+    out = bytearray()
+    i, n = 0, len(data)
+    while i < n:
+        ctrl = data[i]
+        i += 1
+        if ctrl < 32:
+            out += data[i:i + ctrl + 1]
+            i += ctrl + 1
+            continue
+        length = ctrl >> 5
+        if length == 7:
+            length += data[i]
+            i += 1
+        ref = len(out) - ((ctrl & 0x1F) << 8) - data[i] - 1
+        i += 1
+        length += 2
+        if ref < 0:
+            raise ValueError("LZF: reference before the start")
+        if ref + length <= len(out):
+            out += out[ref:ref + length]
+        else:
+            for j in range(length):
+                out.append(out[ref + j])
+    if len(out) != size:
+        raise ValueError(f"LZF: {len(out)} bytes where the header says {size}")
+    return bytes(out)
+
+
+def pcd_to_xyz(path, out):
+    """x y z of a PCD file (ascii, binary or binary_compressed; float fields), exact."""
+    with open(path, "rb") as f:
+        head = {}
+        while True:
+            line = f.readline()
+            if not line:
+                raise ValueError(f"{path}: no DATA line")
+            w = line.decode("ascii").split()
+            if not w or w[0].startswith("#"):
+                continue
+            head[w[0].upper()] = w[1:]
+            if w[0].upper() == "DATA":
+                break
+        body = f.read()
+    fields = head["FIELDS"]
+    sizes = [int(x) for x in head["SIZE"]]
+    types = head["TYPE"]
+    counts = [int(x) for x in head.get("COUNT", ["1"] * len(fields))]
+    n = int(head["POINTS"][0])
+    fmt = {("F", 4): "f", ("F", 8): "d", ("U", 1): "B", ("U", 2): "H", ("U", 4): "I",
+           ("I", 1): "b", ("I", 2): "h", ("I", 4): "i", ("U", 8): "Q", ("I", 8): "q"}
+    cols = {}
+    kind = head["DATA"][0]
+    if kind == "ascii":
+        rows = [r.split() for r in body.decode("ascii").splitlines() if r.strip()]
+        at = 0
+        for name, c in zip(fields, counts):
+            cols[name] = [float(r[at]) for r in rows]
+            at += c
+    else:
+        if kind == "binary_compressed":
+            comp, size = struct.unpack("<II", body[:8])
+            raw = lzf_decompress(body[8:8 + comp], size)
+            at = 0  # field after field, each over all points
+            for name, s, t, c in zip(fields, sizes, types, counts):
+                vals = struct.unpack(f"<{n * c}{fmt[(t, s)]}", raw[at:at + n * s * c])
+                cols[name] = vals[::c]
+                at += n * s * c
+        elif kind == "binary":
+            rec = "<" + "".join(f"{c}{fmt[(t, s)]}" for s, t, c in zip(sizes, types, counts))
+            width = struct.calcsize(rec)
+            vals = list(struct.iter_unpack(rec, body[:n * width]))
+            at = 0
+            for name, c in zip(fields, counts):
+                cols[name] = [v[at] for v in vals]
+                at += c
+        else:
+            raise ValueError(f"{path}: DATA {kind}")
+    with open(out, "w") as f:
+        f.write("# x y z\n")
+        for p in zip(cols["x"], cols["y"], cols["z"]):
+            f.write(" ".join("NaN" if v != v else repr(float(v)) for v in p) + "\n")
+
+
 class Cache:
     def __init__(self, path, fresh):
         self.path = path
@@ -199,32 +285,49 @@ class Bench:
                  "clean_xyz": os.path.join(d, "clean.xyz"),
                  "noisy": os.path.join(d, "noisy" + ext),
                  "noisy_xyz": os.path.join(d, "noisy.xyz")}
-        k = key_of("prep", sha256(scan), self.qemd_sha, NOISE_LEVEL, NOISE_SEED)
+        k = key_of("prep", 2, sha256(scan), self.qemd_sha, NOISE_LEVEL, NOISE_SEED)
         info = self.cache.data["prep"].get(scan_id)
-        if info and info["key"] == k and all(os.path.exists(files[f]) for f in
-                                             ("clean_xyz", "noisy", "noisy_xyz")):
+        needed = ("clean_xyz",) if info and info.get("noise_error") else \
+            ("clean_xyz", "noisy", "noisy_xyz")
+        if info and info["key"] == k and all(os.path.exists(files[f]) for f in needed):
             return files, info
         log(f"{scan_id}: preparing the noisy copy and the XYZ conversions")
-        r = run([self.qemd, "noise", scan, "-o", files["noisy"], "--level", str(NOISE_LEVEL),
-                 "--unit", "median-spacing", "--seed", str(NOISE_SEED)])
-        m = re.search(r"(\d+) points displaced with σ = ([0-9.eE+-]+)", r.stderr)
-        if not m:
-            raise RuntimeError(f"cannot read σ from qemd noise: {r.stderr}")
-        run([self.qemd, "noise", scan, "-o", files["clean_xyz"], "--level", "0"])
-        run([self.qemd, "noise", files["noisy"], "-o", files["noisy_xyz"], "--level", "0"])
+        info = {"key": k, "noise_error": None, "sigma": None, "spacing": None,
+                "clean_xyz_via": "qemd noise --level 0"}
+        # The peers' copy of the scan. `qemd noise` refuses a cloud whose mean spacing is 0
+        # (every point duplicated); the script then converts a PCD file itself.
+        p = subprocess.run([self.qemd, "noise", scan, "-o", files["clean_xyz"], "--level", "0"],
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        if p.returncode != 0:
+            if ext != ".pcd":
+                raise RuntimeError(f"qemd noise cannot convert {scan}: {p.stderr}")
+            log(f"  qemd noise: {last_line(p.stderr)}; converting the PCD file here")
+            pcd_to_xyz(scan, files["clean_xyz"])
+            info["clean_xyz_via"] = "benches/real_scans.py (pcd_to_xyz)"
         with open(files["clean_xyz"]) as f:
-            total = sum(1 for line in f if line.strip() and not line.startswith("#"))
+            info["points"] = sum(1 for line in f if line.strip() and not line.startswith("#"))
         # The XYZ copies must hold the very coordinates of the files they convert.
-        check_clean = self.all_row(json.loads(run(
+        check = self.all_row(json.loads(run(
             [self.qemd, "harm", scan, files["clean_xyz"], "--json"]).stdout))
-        check_noisy = self.all_row(json.loads(run(
-            [self.qemd, "harm", files["noisy"], files["noisy_xyz"], "--json"]).stdout))
-        info = {"key": k, "points": total, "finite": check_clean["count"],
-                "sigma": float(m.group(2)), "spacing": float(m.group(2)) / NOISE_LEVEL,
-                "clean_xyz_max_move": check_clean["absolute"]["max"],
-                "noisy_xyz_max_move": check_noisy["absolute"]["max"],
-                "clean_xyz_max_rel": check_clean["relative"]["max"],
-                "noisy_xyz_max_rel": check_noisy["relative"]["max"]}
+        info.update(finite=check["count"], clean_xyz_max_move=check["absolute"]["max"],
+                    clean_xyz_max_rel=check["relative"]["max"])
+        p = subprocess.run([self.qemd, "noise", scan, "-o", files["noisy"], "--level",
+                            str(NOISE_LEVEL), "--unit", "median-spacing", "--seed",
+                            str(NOISE_SEED)],
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        m = re.search(r"(\d+) points displaced with σ = ([0-9.eE+-]+)", p.stderr)
+        if p.returncode != 0 or not m:
+            why = last_line(p.stderr).replace("qemd: error: ", "").replace(scan + ": ", "")
+            info["noise_error"] = f"`qemd noise`: {why}"
+            log(f"  no noisy copy: {info['noise_error']}")
+        else:
+            info["sigma"] = float(m.group(2))
+            info["spacing"] = info["sigma"] / NOISE_LEVEL
+            run([self.qemd, "noise", files["noisy"], "-o", files["noisy_xyz"], "--level", "0"])
+            check = self.all_row(json.loads(run(
+                [self.qemd, "harm", files["noisy"], files["noisy_xyz"], "--json"]).stdout))
+            info.update(noisy_xyz_max_move=check["absolute"]["max"],
+                        noisy_xyz_max_rel=check["relative"]["max"])
         self.cache.data["prep"][scan_id] = info
         self.cache.save()
         return files, info
@@ -260,13 +363,18 @@ class Bench:
         if status == "ok" and kind != "qemd":
             lines = [json.loads(l) for l in stdout.splitlines() if l.strip()]
             rec["driver"] = lines[-1]
+            if kind == "mls" and lines[-1].get("mls_points") == 0:
+                rec["status"] = "failed"
+                rec["reason"] = (f"MLS returned no point (search radius "
+                                 f"{lines[-1]['radius']:g} = {MLS_FACTOR:g} × a mean spacing of "
+                                 f"{lines[-1]['spacing']:g})")
             if kind == "bilateral":
                 for it in range(1, BILATERAL_ITERS):
                     p = f"{base}.it{it}.xyz"
                     if os.path.exists(p):
                         os.remove(p)
                 os.replace(lines[-1]["output"], out)
-        if status != "ok":
+        if rec["status"] != "ok":
             for p in glob.glob(base + "*"):
                 os.remove(p)
         self.cache.data["runs"][k] = rec
@@ -296,6 +404,10 @@ class Bench:
         for mkey, name, kind, settings in methods:
             res[name] = {}
             for mode in MODES:
+                if mode == "noise" and info["noise_error"]:
+                    res[name][mode] = {"status": "n/a", "wall_s": None, "driver": None,
+                                       "reason": "no noisy copy: " + info["noise_error"]}
+                    continue
                 rk, rec, out = self.method_run(files, mkey, name, kind, settings, mode)
                 cell = {"status": rec["status"], "reason": rec["reason"],
                         "wall_s": rec["wall_s"], "driver": rec["driver"]}
@@ -338,11 +450,15 @@ def mark(text, ok):
 
 def evaluate(cells):
     """Figures and goals of one method on one scan (None where a run failed)."""
-    e = {"fail": {}}
+    e = {"fail": {}, "na": {}}
     for mode in MODES:
         c = cells[mode]
-        if c["status"] != "ok":
+        if c["status"] == "n/a":
+            e["na"][mode] = c["reason"]
+        elif c["status"] == "timeout":
             e["fail"][mode] = c["reason"]
+        elif c["status"] != "ok":
+            e["fail"][mode] = "failed: " + c["reason"]
     h = cells["harm"].get("result")
     if h:
         rows = h["rows"]
@@ -446,7 +562,11 @@ def report(a, scans, methods, results, versions, elapsed):
     # Summary.
     w("## Summary: scans meeting each goal")
     w("")
-    w(f"Out of {len(scans)} scans; a run that failed or timed out counts as missed.")
+    noise_ok = [s for s in scans if not results[s][0]["noise_error"]]
+    w(f"Out of {len(scans)} scans for the do-no-harm goals and {len(noise_ok)} for the "
+      "known-noise goals" + (" (no noisy copy of " + ", ".join(
+          s for s in scans if s not in noise_ok) + ": see its table)" if len(noise_ok) <
+          len(scans) else "") + "; a run that failed or timed out counts as missed.")
     w("")
     w("| method | " + " | ".join(g for _, g in GOALS) + " | runs failed |")
     w("|---|" + "---|" * (len(GOALS) + 1))
@@ -456,7 +576,8 @@ def report(a, scans, methods, results, versions, elapsed):
             if g == "goal_peers" and (m in PEERS or not peers_run):
                 cells.append("—")
                 continue
-            cells.append(f"{sum(1 for s in scans if ev[s][m].get(g))}/{len(scans)}")
+            among = scans if g in ("goal_p99", "goal_max") else noise_ok
+            cells.append(f"{sum(1 for s in among if ev[s][m].get(g))}/{len(among)}")
         nfail = sum(1 for s in scans for mode in MODES if mode in ev[s][m]["fail"])
         w(f"| {m} | " + " | ".join(cells) + f" | {nfail} |")
     w("")
@@ -478,10 +599,19 @@ def report(a, scans, methods, results, versions, elapsed):
         w(f"### {s}")
         w("")
         fin = info["finite"]
-        w(f"{info['points']:,} points" + (f" ({fin:,} finite)" if fin != info["points"] else "")
-          + f"; classes: {src or '?'}; median spacing {info['spacing']:.4g}, σ = "
-          f"{info['sigma']:.4g}; planar points: "
-          + (f"{planar_n:,}" if planar_n is not None else "?") + ".")
+        line = (f"{info['points']:,} points" +
+                (f" ({fin:,} finite)" if fin != info["points"] else "") +
+                f"; classes: {src or '?'}; ")
+        if info["noise_error"]:
+            line += (f"**known noise not measured**: there is no noisy copy "
+                     f"({info['noise_error']}).")
+        else:
+            line += (f"median spacing {info['spacing']:.4g}, σ = {info['sigma']:.4g}; planar "
+                     "points: " + (f"{planar_n:,}" if planar_n is not None else "?") + ".")
+        if info["clean_xyz_via"] != "qemd noise --level 0":
+            line += (f" The peers' XYZ copy of the scan was written by {info['clean_xyz_via']}, "
+                     "since `qemd noise --level 0` refuses the file.")
+        w(line)
         w("")
         w("| method | harm p99 / max (all) | harm worst class p99 / max | noise worst class "
           "ratio | noise ratio (all) | planar ratio | wall s (scan / noisy) |")
@@ -516,17 +646,18 @@ def report(a, scans, methods, results, versions, elapsed):
                     if "goal_peers" in e and not e["goal_peers"]:
                         t += " (not below every peer)"
                     row.append(t)
+            elif "noise" in e["na"]:
+                row += ["n/a", "n/a", "n/a"]
             else:
                 row += [f"{e['fail'].get('noise', 'no result')}", "—", "—"]
             walls = []
             for mode in MODES:
                 c = cells[mode]
-                walls.append(f2(c["wall_s"]) if c["status"] == "ok" else
-                             ("timed out" if c["status"] == "timeout" else f2(c["wall_s"])))
+                walls.append("timed out" if c["status"] == "timeout" else f2(c["wall_s"]))
             row.append(" / ".join(walls))
             w("| " + " | ".join(row) + " |")
             for mode in MODES:
-                d = cells[mode].get("driver") or {}
+                d = (cells[mode].get("driver") or {}) if cells[mode]["status"] == "ok" else {}
                 label = "the scan as is" if mode == "harm" else "the noisy scan"
                 if d.get("missing"):
                     notes.append(f"{m} on {label}: MLS produced nothing for "
@@ -538,6 +669,8 @@ def report(a, scans, methods, results, versions, elapsed):
                     notes.append(f"{m} on {label}: `mst_orient_normals` left "
                                  f"{d['unoriented']:,} points unoriented (smoothed with their "
                                  "PCA normals)")
+            if "harm_all" in e and e["harm_all"]["max"] == 0:
+                notes.append(f"{m} moved no point of the scan as is")
             if e.get("peers_missing"):
                 notes.append(f"{m}: planar ratio compared without "
                              f"{', '.join(e['peers_missing'])} (no result)")
@@ -584,10 +717,10 @@ def report(a, scans, methods, results, versions, elapsed):
 
     w("## Checks")
     w("")
-    rel = max(max(results[s][0]["clean_xyz_max_rel"], results[s][0]["noisy_xyz_max_rel"])
+    rel = max(max(results[s][0]["clean_xyz_max_rel"], results[s][0].get("noisy_xyz_max_rel", 0))
               for s in scans)
-    sig = max(max(results[s][0]["clean_xyz_max_move"], results[s][0]["noisy_xyz_max_move"])
-              / results[s][0]["sigma"] for s in scans)
+    sig = max([max(results[s][0]["clean_xyz_max_move"], results[s][0]["noisy_xyz_max_move"])
+               / results[s][0]["sigma"] for s in noise_ok] or [0])
     w("* XYZ copies for the peers (`qemd harm SCAN clean.xyz`, `qemd harm noisy.EXT noisy.xyz`): "
       f"the largest displacement over all scans is {rel:.2g} × r16, {sig:.2g} × σ. (qemd writes "
       "float32 coordinates with the shortest decimals that read back as the same float32; the "
@@ -606,7 +739,8 @@ def report(a, scans, methods, results, versions, elapsed):
 
 
 def sum_walls(results, scans, names):
-    return sum(results[s][1][m][mode]["wall_s"] for s in scans for m in names for mode in MODES)
+    return sum(results[s][1][m][mode]["wall_s"] or 0 for s in scans for m in names
+               for mode in MODES)
 
 
 def expand_scans(data):
