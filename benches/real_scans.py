@@ -307,6 +307,7 @@ class Bench:
                            "mls": sha256(self.pcl), "qemd": self.qemd_sha}
         os.makedirs(a.work, exist_ok=True)
         self.cache = Cache(os.path.join(a.work, "cache.json"), a.fresh)
+        self.counts = {"ran": 0, "cached": 0}
 
     # --- the inputs of a scan ------------------------------------------------------------------
     def prepare(self, scan_id):
@@ -397,6 +398,7 @@ class Bench:
         rec = self.cache.data["runs"].get(k)
         if rec and (os.path.exists(out) if rec["status"] == "ok" else
                     rec["status"] == "failed" or rec.get("timeout", 0) >= self.a.timeout):
+            self.counts["cached"] += 1
             return k, rec, out
         threads = str(os.cpu_count() or 1)
         if kind == "qemd":
@@ -407,6 +409,7 @@ class Bench:
             cmd = [self.cgal, "bilateral", src, base] + settings
         else:
             cmd = [self.pcl, src, out] + settings + [threads, "--ordered"]
+        self.counts["ran"] += 1
         status, wall, stdout, reason = timed(cmd, self.a.timeout)
         rec = {"status": status, "reason": reason, "wall_s": wall, "driver": None,
                "timeout": self.a.timeout}
@@ -491,6 +494,10 @@ def f3(x):
     return f"{x:.3f}"
 
 
+def pts(n):
+    return f"{n:,} point" + ("s" if n != 1 else "")
+
+
 def cls(row):
     """A class's name and point count."""
     return f"{row['name']}: {row['count']:,} pt" + ("s" if row["count"] != 1 else "")
@@ -553,7 +560,7 @@ GOALS = [
 ]
 
 
-def report(a, scans, methods, results, versions, elapsed):
+def report(a, scans, methods, results, versions, elapsed, counts):
     names = [name for _, name, _, _ in methods]
     peers_run = [n for n in names if n in PEERS]
     ev = {s: {m: evaluate(results[s][1][m]) for m in names} for s in scans}
@@ -581,8 +588,9 @@ def report(a, scans, methods, results, versions, elapsed):
     w(f"Machine: {versions['cpu']}, nproc = {versions['cores']} (wall times are indicative: "
       "the machine may be shared). Versions: " + ", ".join(
           f"{k} {v}" for k, v in versions.items() if k not in ("cpu", "cores")) + ".")
-    w(f"This run took {elapsed:.0f} s, reusing whatever the cache in WORK held; the method runs "
-      f"in the tables add up to {sum_walls(results, scans, names):.0f} s of wall time.")
+    w(f"This run took {elapsed:.0f} s: {counts['ran']} method runs done, {counts['cached']} "
+      f"taken from the cache in WORK; the method runs in the tables add up to "
+      f"{sum_walls(results, scans, names):.0f} s of wall time.")
     w("")
     w("## Method")
     w("")
@@ -726,13 +734,13 @@ def report(a, scans, methods, results, versions, elapsed):
                 label = "the scan as is" if mode == "harm" else "the noisy scan"
                 if d.get("missing"):
                     notes.append(f"{m} on {label}: MLS produced nothing for "
-                                 f"{d['missing']:,} points (written at their input position)")
+                                 f"{pts(d['missing'])} (written at their input position)")
                 if d.get("nonfinite_out"):
                     notes.append(f"{m} on {label}: {d['nonfinite_out']:,} non-finite "
                                  "outputs")
                 if d.get("unoriented"):
                     notes.append(f"{m} on {label}: `mst_orient_normals` left "
-                                 f"{d['unoriented']:,} points unoriented (smoothed with their "
+                                 f"{pts(d['unoriented'])} unoriented (smoothed with their "
                                  "PCA normals)")
             if "harm_all" in e and e["harm_all"]["max"] == 0:
                 notes.append(f"{m} moved no point of the scan as is")
@@ -862,7 +870,7 @@ def main():
             v["qemd commit"] += " (with uncommitted changes)"
     except (subprocess.CalledProcessError, FileNotFoundError):
         pass
-    text = report(a, scans, methods, results, v, elapsed)
+    text = report(a, scans, methods, results, v, elapsed, bench.counts)
     log(f"done in {elapsed:.0f} s")
     if a.out == "-":
         sys.stdout.write(text)
