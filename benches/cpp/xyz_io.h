@@ -1,9 +1,13 @@
-// Minimal ASCII XYZ reader/writer shared by the comparison drivers (benches/compare_cgal_pcl.sh).
-// Reads the first three numbers of every non-empty line; writes "x y z" with 9 significant digits
-// (exact for the float32 inputs qemd writes).
+// Minimal ASCII XYZ reader/writer shared by the comparison drivers (benches/compare_cgal_pcl.sh,
+// benches/real_scans.sh). Reads the first three numbers of every line that starts with one (lines
+// starting with anything else, such as qemd's "# x y z ..." header, are skipped; "NaN" is a
+// number); writes "x y z" with the shortest digits that read back to the same doubles (exact for
+// any input, also for LAS coordinates in the millions).
 #pragma once
 #include <array>
+#include <charconv>
 #include <chrono>
+#include <cmath>
 #include <cstdio>
 #include <cstdlib>
 #include <fstream>
@@ -39,9 +43,25 @@ void write_xyz(const std::string& path, It begin, It end, Get get) {
   if (!f) throw std::runtime_error("cannot write " + path);
   for (It it = begin; it != end; ++it) {
     const std::array<double, 3> p = get(*it);
-    std::fprintf(f, "%.9g %.9g %.9g\n", p[0], p[1], p[2]);
+    char buf[3 * 32 + 4];
+    char* c = buf;
+    for (int i = 0; i < 3; ++i) {
+      if (i) *c++ = ' ';
+      if (std::isfinite(p[i])) {
+        c = std::to_chars(c, buf + sizeof buf, p[i]).ptr;
+      } else {
+        const char* t = std::isnan(p[i]) ? "NaN" : (p[i] > 0 ? "inf" : "-inf");
+        while (*t) *c++ = *t++;
+      }
+    }
+    *c++ = '\n';
+    std::fwrite(buf, 1, static_cast<std::size_t>(c - buf), f);
   }
   if (std::fclose(f) != 0) throw std::runtime_error("error writing " + path);
+}
+
+inline bool is_finite(const std::array<double, 3>& p) {
+  return std::isfinite(p[0]) && std::isfinite(p[1]) && std::isfinite(p[2]);
 }
 
 inline double seconds_since(std::chrono::steady_clock::time_point t0) {
