@@ -193,8 +193,8 @@ impl Ancestor {
     /// Distance from `q` to the faces of its cell, at least 0.
     fn inner(&self, q: [f64; 3]) -> f64 {
         let mut inner = f64::INFINITY;
-        for a in 0..3 {
-            let u = q[a] - self.corner[a];
+        for (&qa, &ca) in q.iter().zip(&self.corner) {
+            let u = qa - ca;
             let lo = (u / self.cell).floor() * self.cell;
             inner = inner.min(u - lo).min(lo + self.cell - u);
         }
@@ -740,7 +740,7 @@ fn query(
     let m = blk.ids.len();
     work.candidates += m as u64;
     work.max_block = work.max_block.max(m as u64);
-    if m < k || !(reach > 0.0) {
+    if m < k || reach.is_nan() || reach <= 0.0 {
         return f64::NAN;
     }
     blk.d.clear();

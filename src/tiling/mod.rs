@@ -191,7 +191,7 @@ fn with_exact_halo<T>(
         }
         growths += 1;
         halo *= 2.0;
-        if !(halo <= limit) || growths > MAX_HALO_GROWTHS {
+        if halo.is_nan() || halo > limit || growths > MAX_HALO_GROWTHS {
             return Err(TilingError::HaloLimit { tile: t, halo });
         }
     }
