@@ -8,6 +8,8 @@ binary little-endian PLY with double x, y, z (so `qemd denoise` runs them in mem
         outliers 50-MAX (default 500) units from the origin, shuffled
     clutter.py far IN.xyz X OUT.ply
         the text cloud IN plus one point at (X, 0, 0)
+    clutter.py ply IN.xyz OUT.ply
+        the text cloud IN as it is
     clutter.py cube N SEED OUT.ply
         N uniform points in a 10-unit cube (a volume, for comparison)
 
@@ -79,6 +81,9 @@ def main():
     f.add_argument("input")
     f.add_argument("x", type=float)
     f.add_argument("out")
+    p = sub.add_parser("ply")
+    p.add_argument("input")
+    p.add_argument("out")
     c = sub.add_parser("cube")
     c.add_argument("n", type=int)
     c.add_argument("seed", type=int)
@@ -88,6 +93,8 @@ def main():
         write_ply(a.out, scene(a.n, a.seed, a.far, a.far_fraction))
     elif a.cmd == "far":
         write_ply(a.out, read_xyz(a.input) + [(a.x, 0.0, 0.0)])
+    elif a.cmd == "ply":
+        write_ply(a.out, read_xyz(a.input))
     else:
         r = random.Random(a.seed)
         write_ply(a.out, [(r.random() * 10, r.random() * 10, r.random() * 10) for _ in range(a.n)])
