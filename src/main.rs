@@ -197,7 +197,7 @@ fn denoise(a: DenoiseArgs) -> Result<()> {
         );
         if report.dropped_non_finite > 0 {
             eprintln!(
-                "qemd: warning: {} points with NaN or infinite coordinates were dropped",
+                "qemd: warning: {} points with NaN, infinite or out-of-range (beyond ±1e12) coordinates were dropped",
                 report.dropped_non_finite
             );
         }

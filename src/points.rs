@@ -9,6 +9,9 @@
 //!   f64 plus the untouched record bytes of every point. Only x, y and z are ever rewritten; every
 //!   other byte of the record travels through unchanged (colour, intensity, GPS time, normals, …).
 //! * [`Faces`] holds polygon connectivity in CSR form; [`Aabb`] is an axis-aligned box.
+//! * [`in_range`] is the one rule for which positions are processed: finite, and no coordinate
+//!   beyond ±[`MAX_COORD`]. Every other point is left out of the neighbourhoods and written back
+//!   unchanged (organized clouds) or dropped and counted, as a NaN point is.
 //!
 //! ```text
 //!  PointBatch (n points, record_len = R)
@@ -417,6 +420,28 @@ impl Faces {
     }
 }
 
+/// The largest coordinate magnitude a processed point may have, in the file's own units.
+///
+/// Why 10¹², and absolute rather than relative to the cloud: no real scan comes near it. Earth-
+/// centred or projected coordinates are below 10⁷ m, 10¹⁰ in millimetres; a LAS coordinate is a
+/// 32-bit integer times its scale plus an offset. A coordinate beyond it is a corrupt record (a
+/// flipped exponent bit, a garbage float), not geometry, and no relative rule can tell one far
+/// point from a scene. The bound keeps every derived quantity finite: squared distances stay
+/// below 3 · (2 · 10¹²)² ≈ 10²⁵, where 10¹⁵⁵ would already overflow, so k-NN radii, halo boxes
+/// and quadrics never become infinite. At 10¹² an f64 still resolves 0.1 mm.
+pub const MAX_COORD: f64 = 1e12;
+
+/// True when `p` is processed: every coordinate finite and within ±[`MAX_COORD`].
+///
+/// Points failing it are treated exactly like non-finite ones: never a neighbour, never moved,
+/// written back unchanged where the layout must be kept (organized clouds), otherwise dropped
+/// and counted in the run's report.
+#[inline]
+pub fn in_range(p: DVec3) -> bool {
+    // Written as comparisons so that NaN fails them.
+    p.x.abs() <= MAX_COORD && p.y.abs() <= MAX_COORD && p.z.abs() <= MAX_COORD
+}
+
 /// An axis-aligned bounding box; empty boxes have `min > max`.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Aabb {
@@ -455,9 +480,10 @@ impl Aabb {
         self.min.x > self.max.x
     }
 
-    /// Grows to hold `p`; non-finite points are ignored.
+    /// Grows to hold `p`; points that fail [`in_range`] (non-finite or beyond ±[`MAX_COORD`]) are
+    /// ignored.
     pub fn grow(&mut self, p: DVec3) {
-        if p.is_finite() {
+        if in_range(p) {
             self.min = self.min.min(p);
             self.max = self.max.max(p);
         }
@@ -519,6 +545,18 @@ mod tests {
         let mut b = [0u8; 4];
         write_scalar(&mut b, ScalarType::F32, Endian::Big, 1.5);
         assert_eq!(b, 1.5f32.to_be_bytes());
+    }
+
+    #[test]
+    fn in_range_is_finite_and_bounded() {
+        assert!(in_range(DVec3::new(-MAX_COORD, MAX_COORD, 0.0)));
+        for bad in [1e200, f64::MAX, f64::INFINITY, f64::NAN, -1.0000001e12] {
+            assert!(!in_range(DVec3::new(0.0, bad, 0.0)), "{bad}");
+        }
+        let mut b = Aabb::empty();
+        b.grow(DVec3::ONE);
+        b.grow(DVec3::new(1e200, 0.0, 0.0));
+        assert_eq!((b.min, b.max), (DVec3::ONE, DVec3::ONE));
     }
 
     #[test]

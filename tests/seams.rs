@@ -230,3 +230,34 @@ fn bilateral_with_its_global_pre_pass() {
         },
     );
 }
+
+/// Issue 15: dense clusters, a stack of coincident points and far outliers (up to 10⁶ units
+/// away, which used to make the k-NN grid coarse and the k-NN quadratic) are exact at any tile
+/// size. The k-NN refines the dense cells into finer grid levels; that must not change a bit.
+#[test]
+fn far_outliers_and_dense_clusters_any_tile_size() {
+    let d = tempfile::tempdir().unwrap();
+    let mut pts = surface(2500, 6);
+    let mut r = Rng(11);
+    for i in 0..1500 {
+        let (c, s) = [
+            (DVec3::new(3.0, 3.0, 1.5), 0.004),
+            (DVec3::new(7.0, 2.0, 0.0), 0.03),
+        ][i % 2];
+        pts.push(c + DVec3::new(r.g(), r.g(), r.g()) * s);
+    }
+    pts.extend(std::iter::repeat_n(DVec3::new(5.0, 5.0, 2.0), 40));
+    for far in [1e3, 1e6, -3e5] {
+        pts.push(DVec3::new(far, 2.0, 1.0));
+    }
+    let input = write(d.path(), "far.ply", pts);
+    assert_seamless(
+        &input,
+        &job(Params::default()),
+        if cfg!(debug_assertions) {
+            &[700]
+        } else {
+            &[1_000_000, 700, 90]
+        },
+    );
+}

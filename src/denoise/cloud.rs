@@ -419,13 +419,14 @@ pub fn run(
 }
 
 /// Runs the point operator on a whole cloud in memory (global index = position in `positions`).
-/// Non-finite points are left as they are and counted.
+/// Points failing [`crate::points::in_range`] (non-finite or beyond ±10¹²) are left as they are
+/// and counted.
 ///
 /// # Errors
 /// Fewer finite points than k.
 pub fn run_all(positions: &[DVec3], params: &Params) -> Result<super::Output, DenoiseError> {
     let finite: Vec<usize> = (0..positions.len())
-        .filter(|&i| positions[i].is_finite())
+        .filter(|&i| crate::points::in_range(positions[i]))
         .collect();
     let pts: Vec<DVec3> = finite.iter().map(|&i| positions[i]).collect();
     let ties: Vec<u64> = finite.iter().map(|&i| i as u64).collect();

@@ -1,4 +1,4 @@
-//! All-points k-NN on a uniform grid, with the k-d tree as the fallback.
+//! All-points k-NN on a hierarchy of uniform grids, with the k-d tree as the fallback.
 //!
 //! Hand-rolled on purpose: asking kiddo for the k nearest neighbours of every point costs about
 //! 3 µs per point on this machine (k = 16, f64, queries in Morton order; `benches/kernels.rs`,
@@ -10,19 +10,39 @@
 //! goes to the k-d tree, so the answer is exactly the brute-force one whatever the cell size.
 //!
 //! ```text
-//!   cell size c ≈ 1.3 × median k-NN radius (from a sample)
+//!   level 0: cell c₀ ≈ 1.5 × median k-NN radius (from a sample)
 //!   ┌───┬───┬───┐
 //!   │   │   │   │   candidates of every query in the centre cell = the 27 cells around it;
 //!   ├───┼───┼───┤   exact when the k-th distance < c + distance from the query to its own
 //!   │   │ q │   │   cell's nearest face (nothing outside the block can be closer)
 //!   ├───┼───┼───┤
-//!   │   │   │   │
-//!   └───┴───┴───┘
+//!   │   │   │   │   a cell whose block holds more than DENSE_LOAD_PER_K · k candidates is
+//!   └───┴───┴───┘   *dense*: its queries move to level 1, a finer grid over the points of
+//!                   the dense cells' blocks only, and so on (at most MAX_LEVELS levels)
 //! ```
+//!
+//! **Why levels.** One cell size cannot suit a scan whose density varies: in a dense cluster a
+//! block holds thousands of candidates and every query scans them all (quadratic in the local
+//! density), and one far outlier used to make the single grid coarse for everything. Each level
+//! refines only where the block load is high, so every query is answered from a block of
+//! bounded size (or by the tree), whatever the geometry; the work counters of [`Work`] show it.
+//!
+//! **Why a refined answer is still exact.** A query q of level l + 1 lies in a dense cell D of
+//! level l, and level l + 1 holds every point of D's block, which contains every point within
+//! `c_l + inner_l(q)` of q (`inner` = distance from q to the faces of its own cell). By induction
+//! level l + 1 holds every point within `cap(q) = min over ancestors j of (c_j + inner_j(q))`, so
+//! a block answer at level l + 1 is exact when its k-th distance is below
+//! `min(ring · c + inner(q), cap(q))`. Cell geometry is computed relative to each level's own
+//! corner, and an absolute allowance `slack` for its rounding is subtracted from every reach.
+//!
+//! **Duplicates.** Points at one position ask the same question, so they get the same answer:
+//! consecutive queries at a bitwise-equal position copy the previous list (a stack of m copies
+//! costs one block scan, not m). A cell that is one big stack is never refined.
 
-use rustc_hash::FxHashMap;
+use std::sync::atomic::{AtomicBool, Ordering};
 
 use rayon::prelude::*;
+use rustc_hash::FxHashMap;
 
 /// Squared distance, coordinate by coordinate (the same formula as the oracle).
 #[inline(always)]
@@ -31,12 +51,63 @@ pub(crate) fn dist2(a: [f64; 3], b: [f64; 3]) -> f64 {
     d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
 }
 
-/// Packs signed cell coordinates into one key (21 bits each, offset to be non-negative).
-#[inline]
-fn key(c: [i64; 3]) -> u64 {
-    const OFF: i64 = 1 << 20;
-    ((c[0] + OFF) as u64) << 42 | ((c[1] + OFF) as u64) << 21 | (c[2] + OFF) as u64
+/// Bits of one axis' cell coordinate in a cell key (coordinates relative to the level's corner).
+const AXIS_BITS: u32 = 42;
+/// Most cells a level spans along one axis: its cell size is floored to `span / MAX_SPAN`, so a
+/// coordinate (plus the two cells a ring reaches beyond) always fits in [`AXIS_BITS`] bits.
+const MAX_SPAN: f64 = (1u64 << 41) as f64;
+/// A cell whose 3 × 3 × 3 block holds more than this many candidates per unit of k is dense.
+/// A uniform cloud at the level-0 cell size has about 7 k (on a surface) to 20 k (in a volume)
+/// on average, so only real density contrasts refine.
+const DENSE_LOAD_PER_K: usize = 32;
+/// The block load per unit of k a refined level aims at (its cell shrinks by the cube root of
+/// the smallest dense load over this, at least by 2).
+const TARGET_LOAD_PER_K: f64 = 8.0;
+/// Ring 2 is tried only while the 5 × 5 × 5 block holds at most this many candidates per unit
+/// of k; beyond it a k-d tree query is cheaper (and a dense cluster two cells from a sparse
+/// point cannot make that point's query scan the cluster).
+const RING2_LOAD_PER_K: usize = 96;
+/// Most grid levels; deeper queries are answered at the last level (or by the tree).
+pub(crate) const MAX_LEVELS: usize = 32;
+/// Rounding allowance of cell geometry, relative to the level's largest coordinate: the cell of a
+/// point and the faces of a cell are computed with a few roundings of relative size 2⁻⁵³.
+const ROUNDING: f64 = 1.0 / (1u64 << 40) as f64;
+
+/// Work counters of one all-points pass: what the k-NN cost is made of, independent of timing
+/// and of the thread count.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Work {
+    /// Points queried.
+    pub queries: u64,
+    /// Candidate distances the grid levels evaluated.
+    pub candidates: u64,
+    /// Cell look-ups of the grid levels (block gathering and load estimates).
+    pub cells: u64,
+    /// Queries the k-d tree answered.
+    pub tree_queries: u64,
+    /// Candidates the k-d tree returned for re-measuring.
+    pub tree_candidates: u64,
+    /// Grid levels built (1 when no cell was dense).
+    pub levels: u32,
+    /// The largest block (candidates) any grid query scanned.
+    pub max_block: u64,
 }
+
+impl Work {
+    fn merge(&mut self, o: &Work) {
+        self.queries += o.queries;
+        self.candidates += o.candidates;
+        self.cells += o.cells;
+        self.tree_queries += o.tree_queries;
+        self.tree_candidates += o.tree_candidates;
+        self.levels = self.levels.max(o.levels);
+        self.max_block = self.max_block.max(o.max_block);
+    }
+}
+
+/// The pass was cancelled through its flag.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) struct Cancelled;
 
 /// Per-thread scratch: the candidate block of one cell in structure-of-arrays form.
 #[derive(Default)]
@@ -49,169 +120,595 @@ struct Block {
     d: Vec<f64>,
     sel: Vec<u32>,
     best: Vec<(u128, u32)>,
-    /// The last answered query of this thread (any cell): its k-th distance bounds the next
-    /// query's by the triangle inequality.
+    /// The last answered query of this thread (any cell, any level): its k-th distance bounds
+    /// the next query's by the triangle inequality.
     prev: Option<([f64; 3], f64)>,
     /// Block positions of the last answered query's neighbours, while the block is unchanged:
     /// the farthest of them from the next query bounds its k-th distance tightly.
     prev_sel: Vec<u32>,
 }
 
+impl Block {
+    fn clear(&mut self) {
+        self.xs.clear();
+        self.ys.clear();
+        self.zs.clear();
+        self.ids.clear();
+        self.ties.clear();
+        self.prev_sel.clear();
+    }
+}
+
 /// The answers of the grid pass for one cell: per point its index and k-th squared distance
 /// (NaN when the k-d tree must answer instead) and, for answered points, k neighbours each in
 /// `lists`, in the same order.
+#[derive(Default)]
 pub(crate) struct CellAnswers {
     /// (point index, k-th squared distance or NaN).
     pub(crate) points: Vec<(u32, f64)>,
     /// k neighbour indices per answered point, ascending by (distance, index).
     pub(crate) lists: Vec<u32>,
+    /// Work of this cell.
+    work: Work,
 }
 
-/// Runs the grid pass over the finite points of `local` with cells of side `cell` (> 0).
-pub(crate) fn all_knn(
-    local: &[[f64; 3]],
-    ties: Option<&[u64]>,
-    k: usize,
+/// One grid level over a subset of the points.
+///
+/// ```text
+///   sorted:  [ ids of cell A (Z-order, id) | ids of cell B | … ]   runs: (key, start, end), by key
+///   ordered: [ their local coordinates, same order ]               columns: (x, y) → its runs
+///   cell of p = ⌊(p − corner) / cell⌋, relative to the subset's own lower corner
+///   key = x · 2⁸⁴ + y · 2⁴² + z: the cells of one (x, y) column are consecutive runs, by z,
+///   so a 3 × 3 × 3 block costs 9 hash look-ups, not 27
+/// ```
+struct Level {
+    /// Cell side.
     cell: f64,
-) -> Vec<CellAnswers> {
-    let tie = |i: u32| ties.map_or(i as u64, |t| t[i as usize]);
-    let finite = |p: &[f64; 3]| p.iter().all(|c| c.is_finite());
-    let coord = |p: &[f64; 3]| -> [i64; 3] {
-        [
-            (p[0] / cell).floor() as i64,
-            (p[1] / cell).floor() as i64,
-            (p[2] / cell).floor() as i64,
-        ]
-    };
-    // Points sorted by cell key, then along a Z-curve inside the cell (so consecutive queries
-    // are close and the previous answer bounds the next one tightly), ties by index: each cell is
-    // a contiguous run.
-    let sub = |p: &[f64; 3], c: [i64; 3]| -> u16 {
+    /// Lower corner of the subset (local coordinates): cell coordinates are relative to it, so
+    /// they stay small and their rounding is relative to the subset's extent, not to the
+    /// coordinates' magnitude.
+    corner: [f64; 3],
+    /// Absolute allowance for the rounding of cell geometry, subtracted from every reach.
+    slack: f64,
+    /// Point indices, sorted by (cell key, Z-order inside the cell, index).
+    sorted: Vec<u32>,
+    /// Their local coordinates, same order (contiguous reads when gathering a block).
+    ordered: Vec<[f64; 3]>,
+    /// One entry per occupied cell, ascending by key: (key, start, end) in `sorted`.
+    runs: Vec<(u128, u32, u32)>,
+    /// Column key (x, y) → its cells' range in `runs`.
+    columns: FxHashMap<u128, (u32, u32)>,
+}
+
+/// The geometry of an earlier (coarser) level a query passed through: it bounds which points
+/// the finer levels hold (see the module overview).
+#[derive(Clone, Copy)]
+struct Ancestor {
+    cell: f64,
+    corner: [f64; 3],
+    slack: f64,
+}
+
+impl Ancestor {
+    /// Distance from `q` to the faces of its cell, at least 0.
+    fn inner(&self, q: [f64; 3]) -> f64 {
+        let mut inner = f64::INFINITY;
+        for (&qa, &ca) in q.iter().zip(&self.corner) {
+            let u = qa - ca;
+            let lo = (u / self.cell).floor() * self.cell;
+            inner = inner.min(u - lo).min(lo + self.cell - u);
+        }
+        inner.max(0.0)
+    }
+
+    /// Radius around `q` within which every point of the level lies in the cells within `ring`
+    /// of q's cell.
+    fn reach(&self, q: [f64; 3], ring: i64) -> f64 {
+        ring as f64 * self.cell + self.inner(q) - self.slack
+    }
+}
+
+const Z_MASK: u128 = (1u128 << AXIS_BITS) - 1;
+
+impl Level {
+    /// Sorts `ids` into cells of side `want` (floored so the level spans at most [`MAX_SPAN`]
+    /// cells per axis; any positive size when the points coincide).
+    fn build(local: &[[f64; 3]], ids: Vec<u32>, want: f64) -> Level {
+        let (lo, hi) = bounds(local, &ids);
+        let corner = if ids.is_empty() { [0.0; 3] } else { lo };
+        let span = (0..3)
+            .map(|a| hi[a] - corner[a])
+            .fold(0.0f64, |m, s| if s.is_finite() { m.max(s) } else { m });
+        let floor = span / MAX_SPAN;
+        let cell = if want.is_finite() && want > floor {
+            want
+        } else if floor > 0.0 {
+            floor
+        } else {
+            1.0
+        };
+        let mut level = Level {
+            cell,
+            corner,
+            slack: ROUNDING * (span + cell),
+            sorted: Vec::new(),
+            ordered: Vec::new(),
+            runs: Vec::new(),
+            columns: FxHashMap::default(),
+        };
+        // Sorted by (cell key, Z-order inside the cell, index): each cell is a contiguous run, and
+        // consecutive queries are close, so the previous answer bounds the next one tightly.
+        // Split into two u64 rather than one u128: 24-byte entries instead of 32.
+        let mut keyed: Vec<(u64, u64, u16, u32)> = ids
+            .par_iter()
+            .map(|&i| {
+                let p = local[i as usize];
+                let c = level.coord(p);
+                let key = level.key(c).unwrap_or(u128::MAX);
+                ((key >> 64) as u64, key as u64, level.sub(p, c), i)
+            })
+            .collect();
+        drop(ids);
+        keyed.par_sort_unstable();
+        for (pos, &(h, l, _, _)) in keyed.iter().enumerate() {
+            let key = (h as u128) << 64 | l as u128;
+            match level.runs.last_mut() {
+                Some(r) if r.0 == key => r.2 = pos as u32 + 1,
+                _ => level.runs.push((key, pos as u32, pos as u32 + 1)),
+            }
+        }
+        for (r, &(key, _, _)) in level.runs.iter().enumerate() {
+            let col = key >> AXIS_BITS;
+            let e = level.columns.entry(col).or_insert((r as u32, r as u32));
+            e.1 = r as u32 + 1;
+        }
+        level.sorted = keyed.iter().map(|&(_, _, _, i)| i).collect();
+        drop(keyed);
+        // A cell-ordered copy of the coordinates: gathering a block then reads contiguous memory
+        // instead of jumping through the input order.
+        level.ordered = level
+            .sorted
+            .par_iter()
+            .map(|&i| local[i as usize])
+            .collect();
+        level
+    }
+
+    fn ancestor(&self) -> Ancestor {
+        Ancestor {
+            cell: self.cell,
+            corner: self.corner,
+            slack: self.slack,
+        }
+    }
+
+    /// Cell coordinates of `p` (non-negative for the level's own points).
+    #[inline]
+    fn coord(&self, p: [f64; 3]) -> [i64; 3] {
+        let c = |a: usize| ((p[a] - self.corner[a]) / self.cell).floor() as i64;
+        [c(0), c(1), c(2)]
+    }
+
+    /// The key of cell `c`, or `None` outside the range keys can hold (no point lies there).
+    #[inline]
+    fn key(&self, c: [i64; 3]) -> Option<u128> {
+        let limit = 1i64 << AXIS_BITS;
+        if c.iter().any(|&v| !(0..limit).contains(&v)) {
+            return None;
+        }
+        Some((c[0] as u128) << (2 * AXIS_BITS) | (c[1] as u128) << AXIS_BITS | c[2] as u128)
+    }
+
+    /// The 9-bit Z-order position of `p` inside its cell `c` (8 steps per axis).
+    fn sub(&self, p: [f64; 3], c: [i64; 3]) -> u16 {
         let mut z = 0u16;
         for a in 0..3 {
-            let f = ((p[a] / cell - c[a] as f64) * 8.0).clamp(0.0, 7.0) as u16;
+            let u = (p[a] - self.corner[a]) / self.cell - c[a] as f64;
+            let f = (u * 8.0).clamp(0.0, 7.0) as u16;
             for bit in 0..3 {
                 z |= ((f >> bit) & 1) << (3 * bit + a);
             }
         }
         z
-    };
-    let mut keyed: Vec<(u64, u16, u32)> = local
-        .par_iter()
-        .enumerate()
-        .filter(|(_, p)| finite(p))
-        .map(|(i, p)| {
-            let c = coord(p);
-            (key(c), sub(p, c), i as u32)
+    }
+
+    /// Calls `f(start, end)` (a range of `sorted`) for every occupied cell at Chebyshev distance
+    /// `lo..=hi` from cell `c`, column by column, until `f` returns false; returns false then.
+    fn for_cells(
+        &self,
+        c: [i64; 3],
+        lo: i64,
+        hi: i64,
+        lookups: &mut u64,
+        mut f: impl FnMut(usize, usize) -> bool,
+    ) -> bool {
+        let limit = 1i64 << AXIS_BITS;
+        for dy in -hi..=hi {
+            for dx in -hi..=hi {
+                let (x, y) = (c[0] + dx, c[1] + dy);
+                if !(0..limit).contains(&x) || !(0..limit).contains(&y) {
+                    continue;
+                }
+                *lookups += 1;
+                let Some(&(r0, r1)) = self.columns.get(&((x as u128) << AXIS_BITS | y as u128))
+                else {
+                    continue;
+                };
+                let runs = &self.runs[r0 as usize..r1 as usize];
+                let plane = dx.abs().max(dy.abs());
+                let first = runs.partition_point(|r| ((r.0 & Z_MASK) as i64) < c[2] - hi);
+                for &(key, a, b) in &runs[first..] {
+                    let dz = (key & Z_MASK) as i64 - c[2];
+                    if dz > hi {
+                        break;
+                    }
+                    if plane.max(dz.abs()) >= lo && !f(a as usize, b as usize) {
+                        return false;
+                    }
+                }
+            }
+        }
+        true
+    }
+
+    /// Appends the cells at Chebyshev distance `lo..=hi` from cell `c` to the block, unless that
+    /// would make it hold more than `cap` candidates; returns false then (the block is then
+    /// incomplete and must not be used for this ring).
+    fn push_cells(
+        &self,
+        blk: &mut Block,
+        c: [i64; 3],
+        (lo, hi): (i64, i64),
+        cap: usize,
+        tie: &impl Fn(u32) -> u64,
+        lookups: &mut u64,
+    ) -> bool {
+        let (sorted, ordered) = (&self.sorted, &self.ordered);
+        self.for_cells(c, lo, hi, lookups, |a, b| {
+            if blk.ids.len() + (b - a) > cap {
+                return false;
+            }
+            blk.ids.extend_from_slice(&sorted[a..b]);
+            blk.ties.extend(sorted[a..b].iter().map(|&i| tie(i)));
+            for p in &ordered[a..b] {
+                blk.xs.push(p[0]);
+                blk.ys.push(p[1]);
+                blk.zs.push(p[2]);
+            }
+            true
         })
-        .collect();
-    keyed.par_sort_unstable();
-    let mut runs: Vec<(u64, u32, u32)> = Vec::new();
-    for (pos, &(kk, _, _)) in keyed.iter().enumerate() {
-        match runs.last_mut() {
-            Some(r) if r.0 == kk => r.2 = pos as u32 + 1,
-            _ => runs.push((kk, pos as u32, pos as u32 + 1)),
+    }
+}
+
+/// Lower and upper corner of the points `ids`.
+fn bounds(local: &[[f64; 3]], ids: &[u32]) -> ([f64; 3], [f64; 3]) {
+    let empty = || ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
+    ids.par_iter()
+        .fold(empty, |(mut lo, mut hi), &i| {
+            let p = local[i as usize];
+            for a in 0..3 {
+                lo[a] = lo[a].min(p[a]);
+                hi[a] = hi[a].max(p[a]);
+            }
+            (lo, hi)
+        })
+        .reduce(empty, |(l1, h1), (l2, h2)| {
+            (
+                [l1[0].min(l2[0]), l1[1].min(l2[1]), l1[2].min(l2[2])],
+                [h1[0].max(h2[0]), h1[1].max(h2[1]), h1[2].max(h2[2])],
+            )
+        })
+}
+
+/// A set of point indices as bits.
+struct Bits(Vec<u64>);
+
+impl Bits {
+    fn new(n: usize) -> Bits {
+        Bits(vec![0; n.div_ceil(64)])
+    }
+    #[inline]
+    fn get(&self, i: u32) -> bool {
+        self.0[(i / 64) as usize] >> (i % 64) & 1 == 1
+    }
+    fn set(&mut self, i: u32) {
+        self.0[(i / 64) as usize] |= 1 << (i % 64);
+    }
+}
+
+/// The fixed inputs of one pass.
+struct Pass<'a> {
+    local: &'a [[f64; 3]],
+    ties: Option<&'a [u64]>,
+    k: usize,
+    cancel: Option<&'a AtomicBool>,
+}
+
+impl Pass<'_> {
+    #[inline]
+    fn tie(&self, i: u32) -> u64 {
+        self.ties.map_or(i as u64, |t| t[i as usize])
+    }
+
+    fn cancelled(&self) -> bool {
+        self.cancel.is_some_and(|c| c.load(Ordering::Relaxed))
+    }
+}
+
+/// Runs the grid levels over the points `ids` of `local` (indices into it), starting with cells
+/// of side `cell`. Every point of `ids` appears in exactly one returned [`CellAnswers`], answered
+/// or marked for the tree (NaN).
+///
+/// # Errors
+/// [`Cancelled`] once `cancel` is set (checked per cell and per query).
+pub(crate) fn all_knn(
+    local: &[[f64; 3]],
+    ids: Vec<u32>,
+    ties: Option<&[u64]>,
+    k: usize,
+    cell: f64,
+    cancel: Option<&AtomicBool>,
+) -> Result<(Vec<CellAnswers>, Work), Cancelled> {
+    let pass = Pass {
+        local,
+        ties,
+        k,
+        cancel,
+    };
+    let mut work = Work {
+        queries: ids.len() as u64,
+        ..Work::default()
+    };
+    let mut out: Vec<CellAnswers> = Vec::new();
+    let mut ancestors: Vec<Ancestor> = Vec::new();
+    // Which points are queries at the current level (`None`: all of the level's points).
+    let mut queries: Option<Bits> = None;
+    let mut subset = ids;
+    let mut want = cell;
+    for depth in 0..MAX_LEVELS {
+        if subset.is_empty() {
+            break;
+        }
+        work.levels = depth as u32 + 1;
+        let level = Level::build(local, subset, want);
+        let is_query = |i: u32| queries.as_ref().is_none_or(|q| q.get(i));
+        let may_defer = depth + 1 < MAX_LEVELS;
+        let run_cell = |blk: &mut Block, r: usize, defer: bool| -> (CellAnswers, usize) {
+            let (_, a, b) = level.runs[r];
+            if pass.cancelled() {
+                return (CellAnswers::default(), 0);
+            }
+            answer_cell(
+                &pass,
+                &level,
+                &ancestors,
+                blk,
+                (a as usize, b as usize),
+                &is_query,
+                defer,
+            )
+        };
+        // Every cell holding queries is answered from its block, or, when the block is dense,
+        // deferred to the next level (its load returned).
+        let mut answers: Vec<(CellAnswers, usize)> = (0..level.runs.len())
+            .into_par_iter()
+            .with_min_len(64)
+            .map_init(Block::default, |blk, r| run_cell(blk, r, may_defer))
+            .collect();
+        if pass.cancelled() {
+            return Err(Cancelled);
+        }
+        let mut dense: Vec<usize> = (0..answers.len()).filter(|&r| answers[r].1 > 0).collect();
+        let mut next = Vec::new();
+        let mut next_want = 0.0;
+        if !dense.is_empty() {
+            // The next level holds every point of the dense cells' blocks.
+            let mut ranges: Vec<(u32, u32)> = Vec::new();
+            for &r in &dense {
+                let c = level.coord(level.ordered[level.runs[r].1 as usize]);
+                let mut lookups = 0;
+                level.for_cells(c, 0, 1, &mut lookups, |a, b| {
+                    ranges.push((a as u32, b as u32));
+                    true
+                });
+                work.cells += lookups;
+            }
+            ranges.par_sort_unstable();
+            ranges.dedup();
+            for (a, b) in ranges {
+                next.extend_from_slice(&level.sorted[a as usize..b as usize]);
+            }
+            let least = dense.iter().map(|&r| answers[r].1).min().unwrap_or(0);
+            let shrink = (least as f64 / (TARGET_LOAD_PER_K * k as f64))
+                .cbrt()
+                .clamp(2.0, 1e6);
+            next_want = level.cell / shrink;
+            // A level that cannot be finer than this one (its span floors the cell size) would
+            // make no progress: answer everything here instead.
+            let (lo, hi) = bounds(local, &next);
+            let span = (0..3).map(|a| hi[a] - lo[a]).fold(0.0f64, f64::max);
+            if span / MAX_SPAN >= level.cell / 1.5 {
+                let forced: Vec<(CellAnswers, usize)> = dense
+                    .par_iter()
+                    .map_init(Block::default, |blk, &r| run_cell(blk, r, false))
+                    .collect();
+                if pass.cancelled() {
+                    return Err(Cancelled);
+                }
+                for (&r, f) in dense.iter().zip(forced) {
+                    answers[r] = f;
+                }
+                dense.clear();
+                next.clear();
+            }
+        }
+        let mut bits = (!dense.is_empty()).then(|| Bits::new(local.len()));
+        for (r, (a, _)) in answers.into_iter().enumerate() {
+            work.merge(&a.work);
+            if !a.points.is_empty() {
+                out.push(CellAnswers {
+                    work: Work::default(),
+                    ..a
+                });
+            }
+            if let Some(bits) = bits.as_mut()
+                && dense.binary_search(&r).is_ok()
+            {
+                let (_, a, b) = level.runs[r];
+                for &i in &level.sorted[a as usize..b as usize] {
+                    if is_query(i) {
+                        bits.set(i);
+                    }
+                }
+            }
+        }
+        let Some(bits) = bits else {
+            break;
+        };
+        ancestors.push(level.ancestor());
+        queries = Some(bits);
+        subset = next;
+        want = next_want;
+    }
+    Ok((out, work))
+}
+
+/// Answers the queries among the points `level.sorted[a..b]` (one cell) from its block: ring 1
+/// first, ring 2 for those ring 1 cannot prove; the rest are marked for the tree. With `defer`,
+/// a dense block is not scanned: the load is returned instead (second value, 0 otherwise).
+fn answer_cell(
+    pass: &Pass,
+    level: &Level,
+    ancestors: &[Ancestor],
+    blk: &mut Block,
+    (a, b): (usize, usize),
+    is_query: &impl Fn(u32) -> bool,
+    defer: bool,
+) -> (CellAnswers, usize) {
+    let k = pass.k;
+    if !level.sorted[a..b].iter().any(|&i| is_query(i)) {
+        return (CellAnswers::default(), 0);
+    }
+    let tie = |i: u32| pass.tie(i);
+    let c = level.coord(level.ordered[a]);
+    let me = level.ancestor();
+    let cap = |q: [f64; 3]| {
+        ancestors
+            .iter()
+            .map(|an| an.reach(q, 1))
+            .fold(f64::INFINITY, f64::min)
+    };
+    let mut out = CellAnswers::default();
+    blk.clear();
+    level.push_cells(blk, c, (0, 1), usize::MAX, &tie, &mut out.work.cells);
+    let dense_load = DENSE_LOAD_PER_K * k;
+    if defer && blk.ids.len() > dense_load {
+        // A stack of coincident points that makes up much of the load cannot be split: answered
+        // here, deduplicated (one block scan for the whole stack).
+        let stack =
+            b - a > dense_load / 4 && level.ordered[a..b].iter().all(|p| *p == level.ordered[a]);
+        if !stack {
+            return (out, blk.ids.len());
         }
     }
-    let table: FxHashMap<u64, (u32, u32)> = runs.iter().map(|&(kk, a, b)| (kk, (a, b))).collect();
-    let sorted: Vec<u32> = keyed.iter().map(|&(_, _, i)| i).collect();
-    drop(keyed);
-    // A cell-ordered copy of the coordinates: gathering a block then reads contiguous memory
-    // instead of jumping through the input order (that jump was most of the cost).
-    let ordered: Vec<[f64; 3]> = sorted.par_iter().map(|&i| local[i as usize]).collect();
-
-    runs.par_iter()
-        .with_min_len(64)
-        .map_init(Block::default, |blk, &(_, a, b)| {
-            let c = coord(&ordered[a as usize]);
-            blk.xs.clear();
-            blk.ys.clear();
-            blk.zs.clear();
-            blk.ids.clear();
-            blk.ties.clear();
-            let push_ring = |blk: &mut Block, ring: i64| {
-                for dz in -ring..=ring {
-                    for dy in -ring..=ring {
-                        for dx in -ring..=ring {
-                            if dx.abs().max(dy.abs()).max(dz.abs()) != ring {
-                                continue;
-                            }
-                            let Some(&(lo, hi)) =
-                                table.get(&key([c[0] + dx, c[1] + dy, c[2] + dz]))
-                            else {
-                                continue;
-                            };
-                            let (lo, hi) = (lo as usize, hi as usize);
-                            blk.ids.extend_from_slice(&sorted[lo..hi]);
-                            blk.ties.extend(sorted[lo..hi].iter().map(|&i| tie(i)));
-                            for p in &ordered[lo..hi] {
-                                blk.xs.push(p[0]);
-                                blk.ys.push(p[1]);
-                                blk.zs.push(p[2]);
-                            }
-                        }
-                    }
+    out.points.reserve(b - a);
+    out.lists.reserve((b - a) * k);
+    let mut retry = Vec::new();
+    // The last query of this cell and where its answer is (`None` when it failed).
+    let mut last: Option<([f64; 3], Option<usize>)> = None;
+    for (&qi, &q) in level.sorted[a..b].iter().zip(&level.ordered[a..b]) {
+        if !is_query(qi) {
+            continue;
+        }
+        if pass.cancelled() {
+            return (CellAnswers::default(), 0);
+        }
+        if let Some((pq, at)) = last
+            && pq == q
+        {
+            // The same position asks the same question: the same answer.
+            match at {
+                Some(at) => {
+                    let r = out.points[out.points.len() - 1].1;
+                    out.lists.extend_from_within(at..at + k);
+                    out.points.push((qi, r));
                 }
-            };
-            blk.prev_sel.clear();
-            push_ring(blk, 0);
-            push_ring(blk, 1);
-            let lo = [c[0] as f64 * cell, c[1] as f64 * cell, c[2] as f64 * cell];
-            let n = (b - a) as usize;
-            let mut out = CellAnswers {
-                points: Vec::with_capacity(n),
-                lists: Vec::with_capacity(n * k),
-            };
-            let mut retry = Vec::new();
-            for (&qi, &q) in sorted[a as usize..b as usize]
-                .iter()
-                .zip(&ordered[a as usize..b as usize])
-            {
-                let r = query(blk, q, k, lo, cell, 1, &mut out.lists);
-                if r.is_nan() {
+                None => {
                     retry.push(out.points.len());
-                } else {
-                    blk.prev = Some((q, r));
+                    out.points.push((qi, f64::NAN));
                 }
-                out.points.push((qi, r));
             }
-            if !retry.is_empty() {
-                // A second ring around the cell answers most of what the first could not
-                // (points near a sparse border); the rest go to the k-d tree. Answers are
-                // appended in retry order, so reorder the lists to follow `points`.
-                push_ring(blk, 2);
-                blk.prev_sel.clear();
-                let mut extra = Vec::new();
-                for &slot in &retry {
-                    let qi = out.points[slot].0;
-                    let q = local[qi as usize];
-                    let r = query(blk, q, k, lo, cell, 2, &mut extra);
-                    out.points[slot].1 = r;
+            continue;
+        }
+        let reach = me.reach(q, 1).min(cap(q));
+        let at = out.lists.len();
+        let r = query(blk, q, k, reach, &mut out.lists, &mut out.work);
+        if r.is_nan() {
+            retry.push(out.points.len());
+            last = Some((q, None));
+        } else {
+            blk.prev = Some((q, r));
+            last = Some((q, Some(at)));
+        }
+        out.points.push((qi, r));
+    }
+    if retry.is_empty() {
+        return (out, 0);
+    }
+    // A second ring around the cell answers most of what the first could not (points near a
+    // sparse border), unless it is heavy; the rest go to the k-d tree. Answers are appended in
+    // retry order, so reorder the lists to follow `points`.
+    blk.prev_sel.clear();
+    let cap2 = RING2_LOAD_PER_K * k;
+    if !level.push_cells(blk, c, (2, 2), cap2, &tie, &mut out.work.cells) {
+        return (out, 0);
+    }
+    let mut extra = Vec::new();
+    let mut last: Option<([f64; 3], f64, Option<usize>)> = None;
+    for &slot in &retry {
+        if pass.cancelled() {
+            return (CellAnswers::default(), 0);
+        }
+        let qi = out.points[slot].0;
+        let q = pass.local[qi as usize];
+        let r = match last {
+            Some((pq, r, at)) if pq == q => {
+                if let Some(at) = at {
+                    extra.extend_from_within(at..at + k);
                 }
-                if extra.is_empty() {
-                    return out;
-                }
-                let mut lists = Vec::with_capacity(out.lists.len() + extra.len());
-                let (mut first, mut second) = (0, 0);
-                let mut next_retry = retry.iter().peekable();
-                for (slot, &(_, r)) in out.points.iter().enumerate() {
-                    let retried = next_retry.peek() == Some(&&slot);
-                    if retried {
-                        next_retry.next();
-                        if !r.is_nan() {
-                            lists.extend_from_slice(&extra[second..second + k]);
-                            second += k;
-                        }
-                    } else if !r.is_nan() {
-                        lists.extend_from_slice(&out.lists[first..first + k]);
-                        first += k;
-                    }
-                }
-                out.lists = lists;
+                r
             }
-            out
-        })
-        .collect()
+            _ => {
+                let reach = me.reach(q, 2).min(cap(q));
+                let at = extra.len();
+                let r = query(blk, q, k, reach, &mut extra, &mut out.work);
+                last = Some((q, r, (!r.is_nan()).then_some(at)));
+                r
+            }
+        };
+        out.points[slot].1 = r;
+    }
+    if extra.is_empty() {
+        return (out, 0);
+    }
+    let mut lists = Vec::with_capacity(out.lists.len() + extra.len());
+    let (mut first, mut second) = (0, 0);
+    let mut next_retry = retry.iter().peekable();
+    for (slot, &(_, r)) in out.points.iter().enumerate() {
+        let retried = next_retry.peek() == Some(&&slot);
+        if retried {
+            next_retry.next();
+            if !r.is_nan() {
+                lists.extend_from_slice(&extra[second..second + k]);
+                second += k;
+            }
+        } else if !r.is_nan() {
+            lists.extend_from_slice(&out.lists[first..first + k]);
+            first += k;
+        }
+    }
+    out.lists = lists;
+    (out, 0)
 }
 
 #[inline(always)]
@@ -225,9 +722,9 @@ pub(crate) fn rank_distance(r: u128) -> f64 {
     f64::from_bits((r >> 64) as u64)
 }
 
-/// Appends the k nearest candidates of `q` in the block (the cells within `ring` of its own,
-/// whose lower corner is `lo`) to `lists` and returns the k-th squared distance, or returns NaN
-/// (appending nothing) when the block cannot prove the answer complete.
+/// Appends the k nearest candidates of `q` in the block to `lists` and returns the k-th squared
+/// distance, or returns NaN (appending nothing) when the block cannot prove the answer complete:
+/// every point outside the block is known to be at least `reach` away from `q`.
 ///
 /// `blk.prev` is an earlier answered query: by the triangle inequality its k neighbours lie within
 /// `√d_prev + |q − q_prev|` of `q`, which bounds this query's k-th distance and lets all but a
@@ -236,13 +733,14 @@ fn query(
     blk: &mut Block,
     q: [f64; 3],
     k: usize,
-    lo: [f64; 3],
-    cell: f64,
-    ring: i64,
+    reach: f64,
     lists: &mut Vec<u32>,
+    work: &mut Work,
 ) -> f64 {
     let m = blk.ids.len();
-    if m < k {
+    work.candidates += m as u64;
+    work.max_block = work.max_block.max(m as u64);
+    if m < k || reach.is_nan() || reach <= 0.0 {
         return f64::NAN;
     }
     blk.d.clear();
@@ -291,15 +789,9 @@ fn query(
     }
     best.sort_unstable();
     let dk = rank_distance(best[k - 1].0);
-    // Any point outside the block is at least `reach` away.
-    let mut inner = f64::INFINITY;
-    for a in 0..3 {
-        inner = inner.min(q[a] - lo[a]).min(lo[a] + cell - q[a]);
-    }
-    let reach = ring as f64 * cell + inner.max(0.0);
-    // Strict, with a relative margin for the rounding of `dist2`.
     blk.prev_sel.clear();
     blk.prev_sel.extend(best[..k].iter().map(|e| e.1));
+    // Strict, with a relative margin for the rounding of `dist2`.
     if dk < reach * reach * (1.0 - 1e-9) {
         lists.extend(best[..k].iter().map(|e| blk.ids[e.1 as usize]));
         dk

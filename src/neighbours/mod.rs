@@ -3,12 +3,18 @@
 //! # Brief overview
 //!
 //! * [`KnnIndex`] answers k-NN and radius queries over positions taken relative to a fixed f64
-//!   origin: a uniform grid for the all-points k-NN pass (see `grid.rs`), a kiddo k-d tree for
-//!   single queries and the grid's rare fallbacks. Answers are exact and deterministic:
+//!   origin: a hierarchy of uniform grids for the all-points k-NN pass (see `grid.rs`), a kiddo
+//!   k-d tree for single queries and the grid's rare fallbacks. Only points whose relative
+//!   coordinates are all within ±[`LOCAL_LIMIT`] are indexed (non-finite and absurdly far points
+//!   never are), so no distance between indexed points can overflow. Answers are exact and
+//!   deterministic:
 //!   candidates are ranked by (squared distance, tie key) with this crate's own distance formula,
 //!   where the tie key is the point's *global* index. Equal distances (duplicates, grids) always
 //!   select the lowest global indices, so a tile, whatever order it stores its points in, picks
 //!   exactly the neighbours the whole cloud would.
+//! * The all-points pass has bounded work per point whatever the geometry (dense clusters, far
+//!   outliers, duplicate stacks); [`KnnWork`] counts it. It checks the cancellation flag a caller
+//!   installs with [`with_cancel`] and stops with [`NeighboursError::Cancelled`].
 //! * [`spatial_order`] is the Morton (Z-curve) permutation kernels use to lay points out so that
 //!   neighbours are close in memory.
 //! * [`Neighbourhoods`] stores the lists in CSR form; k-NN lists are the special case of equal
@@ -23,13 +29,17 @@
 //! ```
 
 pub mod brute;
+mod cancel;
 mod grid;
 mod mesh;
 
+pub use cancel::{requested as cancel_requested, with_cancel};
+pub use grid::Work as KnnWork;
 pub use mesh::{MeshAdjacency, RingScratch};
 
 use std::num::NonZeroUsize;
 use std::sync::OnceLock;
+use std::sync::atomic::Ordering;
 
 use glam::DVec3;
 use kiddo::{ImmutableKdTree, SquaredEuclidean};
@@ -67,6 +77,22 @@ pub enum NeighboursError {
     /// The k-d tree could not be built.
     #[error("k-d tree construction failed: {0}")]
     Tree(String),
+    /// The pass was cancelled through the flag installed with [`with_cancel`].
+    #[error("cancelled")]
+    Cancelled,
+}
+
+/// The largest relative coordinate magnitude (|p − origin| per axis) an indexed point may have:
+/// 2⁴³ ≈ 8.8 · 10¹². It is more than twice [`crate::points::MAX_COORD`], so every point the
+/// pipeline processes is indexed whatever origin inside the cloud's box is chosen, and squared
+/// distances between indexed points stay below 3 · (2 · 2⁴³)² ≈ 10²⁷: never infinite.
+pub const LOCAL_LIMIT: f64 = (1u64 << 43) as f64;
+
+/// True when relative coordinates `p` are indexed (finite, within ±[`LOCAL_LIMIT`]).
+#[inline]
+pub fn indexable(p: [f64; 3]) -> bool {
+    // Comparisons, so that NaN fails.
+    p[0].abs() <= LOCAL_LIMIT && p[1].abs() <= LOCAL_LIMIT && p[2].abs() <= LOCAL_LIMIT
 }
 
 /// Neighbour lists in compressed-sparse-row form.
@@ -114,15 +140,16 @@ pub struct KnnIndex {
     /// Positions relative to `origin`, as stored in the tree.
     local: Vec<[f64; 3]>,
     origin: DVec3,
-    /// Number of finite, indexed points (the tree holds a placeholder when this is 0).
+    /// Number of indexed points (the tree holds a placeholder when this is 0).
     indexed: usize,
     /// Tie key of each point (its global index); `None` means the local index.
     ties: Option<Vec<u64>>,
 }
 
 impl KnnIndex {
-    /// Builds the index over `points` (relative coordinates `p − origin`). Non-finite points are
-    /// not indexed and never returned.
+    /// Builds the index over `points` (relative coordinates `p − origin`). Points failing
+    /// [`indexable`] (non-finite, or beyond ±[`LOCAL_LIMIT`] from the origin) are not indexed and
+    /// never returned.
     ///
     /// # Errors
     /// [`NeighboursError::TooManyPoints`] beyond u32 indices.
@@ -134,10 +161,7 @@ impl KnnIndex {
             .par_iter()
             .map(|&p| (p - origin).to_array())
             .collect();
-        let indexed = local
-            .iter()
-            .filter(|p| p.iter().all(|c| c.is_finite()))
-            .count();
+        let indexed = local.iter().filter(|p| indexable(**p)).count();
         Ok(KnnIndex {
             tree: OnceLock::new(),
             local,
@@ -147,14 +171,14 @@ impl KnnIndex {
         })
     }
 
-    /// The k-d tree over the finite points, built on first use.
+    /// The k-d tree over the indexed points, built on first use.
     fn tree(&self) -> &Tree {
         self.tree.get_or_init(|| {
             let entries: Vec<(u32, [f64; 3])> = self
                 .local
                 .iter()
                 .enumerate()
-                .filter(|(_, p)| p.iter().all(|c| c.is_finite()))
+                .filter(|(_, p)| indexable(**p))
                 .map(|(i, &p)| (i as u32, p))
                 .collect();
             let entries = if entries.is_empty() {
@@ -194,7 +218,7 @@ impl KnnIndex {
         self.ties.as_deref()
     }
 
-    /// Number of finite points in the index.
+    /// Number of indexed points.
     pub fn indexed(&self) -> usize {
         self.indexed
     }
@@ -225,11 +249,37 @@ impl KnnIndex {
     /// tree proposes a radius, every point inside a slightly larger radius is re-measured, and
     /// the k best by (distance, tie key) win. So the grid pass, this fallback and the oracle agree
     /// bit for bit, ties and rounding included.
+    ///
+    /// A query that is not itself [`indexable`] (beyond ±[`LOCAL_LIMIT`], where distances may
+    /// overflow) is answered by a linear scan with the same ranking; a non-finite one gets no
+    /// neighbours and NaN.
     pub fn knn_at(&self, q: [f64; 3], k: usize, out: &mut Vec<u32>) -> f64 {
+        self.knn_at_counted(q, k, out).0
+    }
+
+    /// [`KnnIndex::knn_at`], also returning how many candidates were measured.
+    fn knn_at_counted(&self, q: [f64; 3], k: usize, out: &mut Vec<u32>) -> (f64, usize) {
         if k == 0 || self.indexed == 0 {
-            return 0.0;
+            return (0.0, 0);
+        }
+        if !q.iter().all(|c| c.is_finite()) {
+            return (f64::NAN, 0);
         }
         let want = k.min(self.indexed);
+        if !indexable(q) {
+            let mut cand: Vec<(u128, u32)> = (0..self.local.len())
+                .filter(|&i| indexable(self.local[i]))
+                .map(|i| {
+                    let d = grid::dist2(q, self.local[i]);
+                    (grid::rank(d, self.tie(i)), i as u32)
+                })
+                .collect();
+            let seen = cand.len();
+            cand.sort_unstable();
+            cand.truncate(want);
+            out.extend(cand.iter().map(|c| c.1));
+            return (cand.last().map_or(0.0, |c| grid::rank_distance(c.0)), seen);
+        }
         let proposal = self
             .tree()
             .query(&q)
@@ -253,19 +303,30 @@ impl KnnIndex {
                 )
             })
             .collect();
+        let seen = cand.len();
         cand.sort_unstable();
         cand.truncate(want);
         out.extend(cand.iter().map(|c| c.1));
-        cand.last().map_or(0.0, |c| grid::rank_distance(c.0))
+        (cand.last().map_or(0.0, |c| grid::rank_distance(c.0)), seen)
     }
 
     /// Every indexed point within squared distance `r2` of `q` (inclusive, by this crate's own
-    /// distance), ascending by index.
+    /// distance), ascending by index. A query or radius the tree cannot take (not
+    /// [`indexable`], infinite) is answered by a linear scan; a NaN one finds nothing.
     pub fn within_at(&self, q: [f64; 3], r2: f64, out: &mut Vec<u32>) {
-        if self.indexed == 0 {
+        if self.indexed == 0 || r2.is_nan() || !q.iter().all(|c| c.is_finite()) {
             return;
         }
         let start = out.len();
+        if !indexable(q) || !r2.is_finite() {
+            out.extend(
+                (0..self.local.len())
+                    .filter(|&i| indexable(self.local[i]))
+                    .filter(|&i| grid::dist2(q, self.local[i]) <= r2)
+                    .map(|i| i as u32),
+            );
+            return;
+        }
         out.extend(
             self.tree()
                 .query(&q)
@@ -285,16 +346,17 @@ impl KnnIndex {
         self.local[i]
     }
 
-    /// A grid cell size for [`KnnIndex::knn_all`]: 1.3 × the median k-th neighbour distance,
-    /// estimated on an evenly strided subsample of at most 16 384 points (for a stride `s`, a
-    /// ball holding k − 1 neighbours holds about (k − 1)/s sample points; below 5, radii are
-    /// scaled as on a surface, ∝ √count), and bounded so the grid has at most 2^19 cells per axis. Only speed
-    /// depends on it: the grid pass is exact for any cell size.
+    /// The level-0 grid cell size for [`KnnIndex::knn_all`]: 1.5 × the median k-th neighbour
+    /// distance, estimated on an evenly strided subsample of at most 16 384 points (for a stride
+    /// `s`, a ball holding k − 1 neighbours holds about (k − 1)/s sample points; below 5, radii
+    /// are scaled as on a surface, ∝ √count); 0 when it cannot be estimated (the grid then
+    /// chooses). Only speed depends on it: the grid pass is exact for any cell size, and refines
+    /// dense cells itself.
     fn cell_size(&self, k: usize) -> f64 {
         let finite: Vec<DVec3> = self
             .local
             .iter()
-            .filter(|p| p.iter().all(|c| c.is_finite()))
+            .filter(|p| indexable(**p))
             .map(|&p| DVec3::from_array(p))
             .collect();
         let stride = (finite.len() / 16_384).max(1);
@@ -302,15 +364,11 @@ impl KnnIndex {
         // Lists include the point itself, so a list of k holds k − 1 neighbours.
         let ks = ((k - 1) as f64 / stride as f64).round().max(5.0) as usize + 1;
         let scale = ((k - 1) as f64 / ((ks - 1) * stride) as f64).sqrt();
-        let extent = finite
-            .iter()
-            .fold(0.0f64, |m, p| m.max(p.abs().max_element()));
-        let floor = extent / (1u64 << 19) as f64;
         if sample.len() <= ks {
-            return floor;
+            return 0.0;
         }
         let Ok(sub) = KnnIndex::build(&sample, DVec3::ZERO) else {
-            return floor;
+            return 0.0;
         };
         let step = (sample.len() / 1024).max(1);
         let mut radii: Vec<f64> = (0..sample.len())
@@ -322,16 +380,29 @@ impl KnnIndex {
             .collect();
         radii.sort_by(f64::total_cmp);
         let median = radii.get(radii.len() / 2).copied().unwrap_or(0.0);
-        (1.3 * median * scale).max(floor)
+        1.5 * median * scale
     }
 
     /// k-NN lists of every indexed point (the point itself included), computed in parallel;
-    /// also returns the squared radius of each list. Non-finite points get empty lists.
+    /// also returns the squared radius of each list. Points that are not indexed get empty lists.
     ///
     /// # Errors
     /// [`NeighboursError::ZeroK`], [`NeighboursError::TooFewPoints`] when fewer than `k` points are
-    /// indexed.
+    /// indexed, [`NeighboursError::Cancelled`] when the flag installed with [`with_cancel`] on
+    /// this thread is set during the pass.
     pub fn knn_all(&self, k: usize) -> Result<(Neighbourhoods, Vec<f64>), NeighboursError> {
+        self.knn_all_counted(k)
+            .map(|(lists, radii, _)| (lists, radii))
+    }
+
+    /// [`KnnIndex::knn_all`], also returning the work it did.
+    ///
+    /// # Errors
+    /// As [`KnnIndex::knn_all`].
+    pub fn knn_all_counted(
+        &self,
+        k: usize,
+    ) -> Result<(Neighbourhoods, Vec<f64>, KnnWork), NeighboursError> {
         if k == 0 {
             return Err(NeighboursError::ZeroK);
         }
@@ -341,56 +412,71 @@ impl KnnIndex {
                 k,
             });
         }
+        let flag = cancel::current();
+        let cancel = flag.as_deref();
+        let stop = || cancel.is_some_and(|c| c.load(Ordering::Relaxed));
         let n = self.local.len();
         let cell = self.cell_size(k);
-        let cells = if cell > 0.0 && cell.is_finite() {
-            grid::all_knn(&self.local, self.ties(), k, cell)
-        } else {
-            // Every sampled point has k coincident neighbours: let the tree answer all.
-            vec![grid::CellAnswers {
-                points: (0..n)
-                    .filter(|&i| self.local[i].iter().all(|c| c.is_finite()))
-                    .map(|i| (i as u32, f64::NAN))
-                    .collect(),
-                lists: Vec::new(),
-            }]
-        };
+        let ids: Vec<u32> = (0..n as u32)
+            .filter(|&i| indexable(self.local[i as usize]))
+            .collect();
+        let (cells, mut work) = grid::all_knn(&self.local, ids, self.ties(), k, cell, cancel)
+            .map_err(|_| NeighboursError::Cancelled)?;
         let mut offsets = Vec::with_capacity(n + 1);
         offsets.push(0u32);
         let mut total = 0u32;
         let mut listed = Vec::with_capacity(n);
         for (i, p) in self.local.iter().enumerate() {
-            if p.iter().all(|c| c.is_finite()) {
+            if indexable(*p) {
                 total += k as u32;
                 listed.push(i as u32);
             }
             offsets.push(total);
         }
-        // Where each point's answer is: (cell, offset into its lists), or (MAX, fallback slot).
+        // Where each point's answer is: (cell, offset into its lists), or (MAX, fallback group).
         const TREE: u32 = u32::MAX;
         let mut loc = vec![(TREE, 0u32); n];
-        let mut fallback = Vec::new();
+        // Points the tree answers, grouped by position: a cell lists coincident points
+        // consecutively, and they share one answer.
+        let mut groups: Vec<u32> = Vec::new();
         for (ci, c) in cells.iter().enumerate() {
             let mut at = 0u32;
+            let mut last: Option<[f64; 3]> = None;
             for &(i, r) in &c.points {
                 if r.is_nan() {
-                    loc[i as usize] = (TREE, fallback.len() as u32);
-                    fallback.push(i);
+                    let p = self.local[i as usize];
+                    if last != Some(p) {
+                        groups.push(i);
+                        last = Some(p);
+                    }
+                    loc[i as usize] = (TREE, groups.len() as u32 - 1);
                 } else {
                     loc[i as usize] = (ci as u32, at);
                     at += k as u32;
+                    last = None;
                 }
             }
         }
         // Sparse regions and outliers go to the tree, in parallel.
-        let resolved: Vec<(Vec<u32>, f64)> = fallback
+        let resolved: Vec<(Vec<u32>, f64, usize)> = groups
             .par_iter()
             .map(|&i| {
                 let mut v = Vec::with_capacity(k);
-                let r = self.knn_of(i as usize, k, &mut v);
-                (v, r)
+                if stop() {
+                    return (v, f64::NAN, 0);
+                }
+                let (r, seen) = self.knn_at_counted(self.local[i as usize], k, &mut v);
+                (v, r, seen)
             })
             .collect();
+        if stop() {
+            return Err(NeighboursError::Cancelled);
+        }
+        work.tree_queries = cells
+            .iter()
+            .map(|c| c.points.iter().filter(|p| p.1.is_nan()).count() as u64)
+            .sum();
+        work.tree_candidates = resolved.iter().map(|r| r.2 as u64).sum();
         // Gather every list into CSR order, in parallel.
         let mut indices = vec![0u32; total as usize];
         indices
@@ -413,10 +499,12 @@ impl KnnIndex {
                 }
             }
         }
-        for (&i, (_, r)) in fallback.iter().zip(&resolved) {
-            radii[i as usize] = *r;
+        for (i, l) in loc.iter().enumerate() {
+            if l.0 == TREE && indexable(self.local[i]) {
+                radii[i] = resolved[l.1 as usize].1;
+            }
         }
-        Ok((Neighbourhoods { offsets, indices }, radii))
+        Ok((Neighbourhoods { offsets, indices }, radii, work))
     }
 }
 
@@ -438,7 +526,7 @@ fn spread3(mut v: u64) -> u64 {
 }
 
 /// The indices of `points` in Morton (Z-curve) order over their bounding box (63-bit codes, ties by
-/// index), non-finite points last. Kernels that visit points in this order touch neighbouring
+/// index), points failing [`crate::points::in_range`] (non-finite or absurdly far) last. Kernels that visit points in this order touch neighbouring
 /// data in neighbouring memory; on shuffled input that halves the time of the normal and solve
 /// passes.
 pub fn spatial_order(points: &[DVec3]) -> Vec<u32> {
@@ -456,7 +544,7 @@ pub fn spatial_order(points: &[DVec3]) -> Vec<u32> {
         .par_iter()
         .enumerate()
         .map(|(i, p)| {
-            if !p.is_finite() {
+            if !crate::points::in_range(*p) {
                 return (u64::MAX, i as u32);
             }
             let d = *p - bounds.min;
@@ -582,5 +670,214 @@ mod tests {
         let (nb, _) = index.knn_all(3).unwrap();
         assert_eq!(nb.get(0), &[0, 2, 3]);
         assert!(nb.get(1).is_empty());
+    }
+
+    /// A deterministic generator for the scene tests.
+    struct Rng(u64);
+    impl Rng {
+        fn f(&mut self) -> f64 {
+            self.0 ^= self.0 << 13;
+            self.0 ^= self.0 >> 7;
+            self.0 ^= self.0 << 17;
+            (self.0 >> 11) as f64 / (1u64 << 53) as f64
+        }
+        fn g(&mut self) -> f64 {
+            let (u, v) = (self.f().max(1e-300), self.f());
+            (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()
+        }
+    }
+
+    /// A wavy 10 × 10 surface of `n` points.
+    fn surface(n: usize, seed: u64) -> Vec<DVec3> {
+        let mut r = Rng(seed | 1);
+        (0..n)
+            .map(|_| {
+                let (x, y) = (r.f() * 10.0, r.f() * 10.0);
+                DVec3::new(x, y, (x * 0.8).sin() + 0.01 * r.g())
+            })
+            .collect()
+    }
+
+    /// The cluttered scene of the seam tests, small: a surface, dense Gaussian clusters, exact
+    /// duplicates, a stack of coincident points and far outliers (up to `far`).
+    fn cluttered(n: usize, far: f64, seed: u64) -> Vec<DVec3> {
+        let mut r = Rng(seed | 1);
+        let mut v = surface(n * 3 / 5, seed);
+        let centres = [
+            (DVec3::new(2.0, 2.0, 1.0), 0.003),
+            (DVec3::new(7.0, 5.0, 0.5), 0.03),
+        ];
+        for i in 0..n * 2 / 5 {
+            let (c, s) = centres[i % 2];
+            v.push(c + DVec3::new(r.g(), r.g(), r.g()) * s);
+        }
+        for _ in 0..n / 100 {
+            let p = v[(r.f() * v.len() as f64) as usize];
+            v.push(p);
+        }
+        v.extend(std::iter::repeat_n(DVec3::new(5.0, 5.0, 3.0), 60));
+        for _ in 0..n / 500 + 1 {
+            let d = DVec3::new(r.g(), r.g(), r.g()).normalize_or(DVec3::X);
+            v.push(d * (50.0 + r.f() * far));
+        }
+        v
+    }
+
+    /// Every `step`-th list of `nb` equals the brute-force oracle's.
+    fn assert_oracle(pts: &[DVec3], origin: DVec3, nb: &Neighbourhoods, k: usize, step: usize) {
+        let local: Vec<DVec3> = pts.iter().map(|&p| p - origin).collect();
+        for i in (0..pts.len()).step_by(step) {
+            if !indexable(local[i].to_array()) {
+                assert!(nb.get(i).is_empty());
+                continue;
+            }
+            assert_eq!(nb.get(i), &brute::knn(&local, local[i], k)[..], "point {i}");
+        }
+    }
+
+    fn work_of(pts: &[DVec3], k: usize) -> (Neighbourhoods, KnnWork) {
+        let origin = crate::denoise::origin_of(pts);
+        let index = KnnIndex::build(pts, origin).unwrap();
+        let (nb, _, work) = index.knn_all_counted(k).unwrap();
+        assert_eq!(work.queries, pts.len() as u64);
+        (nb, work)
+    }
+
+    /// Issue 15: one far point used to make the grid coarse for every point (20 k points with one
+    /// point at 10⁶ took 40 µs per query instead of 1): the work per query must not depend on
+    /// how far the outlier is, and the answer must stay the oracle's.
+    #[test]
+    fn issue15_far_outlier_knn_is_bounded() {
+        let k = 16;
+        let base = surface(20_000, 5);
+        let (_, plain) = work_of(&base, k);
+        for far in [1e3, 1e6, 1e11] {
+            let mut pts = base.clone();
+            pts.push(DVec3::new(far, 0.0, 0.0));
+            let (nb, work) = work_of(&pts, k);
+            let per_query = work.candidates as f64 / work.queries as f64;
+            let plain_per_query = plain.candidates as f64 / plain.queries as f64;
+            assert!(
+                per_query <= 2.0 * plain_per_query,
+                "far = {far}: {per_query:.0} candidates per query, {plain_per_query:.0} without it"
+            );
+            assert!(work.max_block <= 96 * k as u64, "{work:?}");
+            assert!(work.tree_queries <= 20, "{work:?}");
+            assert!(work.cells <= 4 * plain.cells, "{work:?} vs {plain:?}");
+            assert_oracle(&pts, crate::denoise::origin_of(&pts), &nb, k, 97);
+            let last = pts.len() - 1;
+            assert_eq!(
+                nb.get(last),
+                &brute::knn(
+                    &pts.iter()
+                        .map(|&p| p - crate::denoise::origin_of(&pts))
+                        .collect::<Vec<_>>(),
+                    pts[last] - crate::denoise::origin_of(&pts),
+                    k
+                )[..]
+            );
+        }
+    }
+
+    /// Dense clusters, duplicates, a stack of 60 coincident points and far outliers: every grid
+    /// query scans a bounded block, and the answer is the oracle's everywhere.
+    #[test]
+    fn cluttered_scene_is_exact_with_bounded_blocks() {
+        for (seed, far) in [(1, 500.0), (2, 1e5), (3, 1e9)] {
+            let pts = cluttered(4000, far, seed);
+            for k in [1, 8, 16] {
+                let (nb, work) = work_of(&pts, k);
+                assert!(work.max_block <= 96 * k.max(4) as u64, "k = {k}: {work:?}");
+                assert!(k < 16 || work.levels >= 2, "the clusters refine: {work:?}");
+                assert!(
+                    (work.candidates as f64) < 40.0 * k.max(4) as f64 * work.queries as f64,
+                    "k = {k}: {work:?}"
+                );
+                assert_oracle(&pts, crate::denoise::origin_of(&pts), &nb, k, 3);
+            }
+            // Tie keys in another order than the storage order (a tile's global indices).
+            let ties: Vec<u64> = (0..pts.len() as u64).map(|i| i * 7919 % 100_003).collect();
+            let index = KnnIndex::build_with_ties(&pts, DVec3::ZERO, ties.clone()).unwrap();
+            let (nb, _) = index.knn_all(16).unwrap();
+            for i in (0..pts.len()).step_by(7) {
+                let want = brute::knn_with_ties(&pts, &ties, pts[i], 16);
+                assert_eq!(nb.get(i), &want[..], "point {i}");
+            }
+        }
+    }
+
+    /// A stack of many coincident points costs one block scan, not one per copy; each copy's
+    /// list is the k copies of lowest index.
+    #[test]
+    fn duplicate_stacks_are_answered_once() {
+        let mut pts = surface(2000, 9);
+        pts.extend(std::iter::repeat_n(DVec3::new(5.0, 5.0, 0.5), 20_000));
+        let (nb, work) = work_of(&pts, 16);
+        assert!(work.candidates < 2_000_000, "{work:?}");
+        let first: Vec<u32> = (2000..2016).collect();
+        assert_eq!(nb.get(2000), &first[..]);
+        assert_eq!(nb.get(21_999), &first[..]);
+        assert_oracle(&pts, crate::denoise::origin_of(&pts), &nb, 16, 37);
+    }
+
+    /// Issue 15: a coordinate whose square overflows (here 10²⁰⁰) is not indexed, never a
+    /// neighbour, and the pass finishes; single queries there are answered by a linear scan.
+    #[test]
+    fn issue15_huge_coordinate_is_not_indexed() {
+        let mut pts = surface(300, 4);
+        pts.push(DVec3::new(1e200, 0.0, 0.0));
+        pts.push(DVec3::new(f64::MAX, 0.0, 0.0));
+        let index = KnnIndex::build(&pts, DVec3::ZERO).unwrap();
+        assert_eq!(index.indexed(), 300);
+        let (nb, radii) = index.knn_all(16).unwrap();
+        assert!(nb.get(300).is_empty() && nb.get(301).is_empty());
+        assert!(radii.iter().all(|r| r.is_finite()));
+        assert!((0..300).all(|i| nb.get(i).iter().all(|&j| j < 300)));
+        assert_oracle(&pts, DVec3::ZERO, &nb, 16, 1);
+        let mut out = Vec::new();
+        let r = index.knn_at([1e200, 0.0, 0.0], 4, &mut out);
+        assert_eq!(out.len(), 4);
+        assert_eq!(r, f64::INFINITY);
+        out.clear();
+        assert!(index.knn_at([f64::NAN, 0.0, 0.0], 4, &mut out).is_nan());
+        assert!(out.is_empty());
+        index.within_at([1e200, 0.0, 0.0], f64::INFINITY, &mut out);
+        assert_eq!(out.len(), 300);
+        out.clear();
+        index.within_at([0.0; 3], f64::NAN, &mut out);
+        assert!(out.is_empty());
+    }
+
+    /// A set flag stops the pass with `Cancelled`; without it the same index answers.
+    #[test]
+    fn knn_all_stops_when_cancelled() {
+        let pts = surface(5000, 2);
+        let index = KnnIndex::build(&pts, DVec3::ZERO).unwrap();
+        let flag = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(true));
+        assert_eq!(
+            with_cancel(&flag, || index.knn_all(16)).unwrap_err(),
+            NeighboursError::Cancelled
+        );
+        flag.store(false, Ordering::Relaxed);
+        assert!(with_cancel(&flag, || index.knn_all(16)).is_ok());
+    }
+
+    /// Results do not depend on the number of threads.
+    #[test]
+    fn knn_is_independent_of_the_thread_count() {
+        let pts = cluttered(4000, 1e4, 7);
+        let index = KnnIndex::build(&pts, DVec3::ZERO).unwrap();
+        let one = rayon::ThreadPoolBuilder::new()
+            .num_threads(1)
+            .build()
+            .unwrap()
+            .install(|| index.knn_all_counted(16).unwrap());
+        let four = rayon::ThreadPoolBuilder::new()
+            .num_threads(4)
+            .build()
+            .unwrap()
+            .install(|| index.knn_all_counted(16).unwrap());
+        assert_eq!(one.0, four.0);
+        assert_eq!(one.1, four.1);
     }
 }

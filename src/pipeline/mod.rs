@@ -13,9 +13,14 @@
 //!
 //! The output is created *like* the input (same schema, property types, header, order) and
 //! appears atomically; the input is only ever opened for reading, and an output path naming the
-//! input is refused. Non-finite points of a point cloud are dropped and counted (organized PCD
-//! clouds keep them, unprocessed). Outliers are flagged (keeping their input position) or removed
-//! as [`OutlierMode`] says.
+//! input is refused. Points of a point cloud that fail [`crate::points::in_range`] (a NaN or
+//! infinite coordinate, or one beyond ±10¹², i.e. a corrupt record) are dropped and counted as
+//! they are read (organized PCD clouds keep them, unprocessed and unchanged). Outliers are
+//! flagged (keeping their input position) or removed as [`OutlierMode`] says.
+//!
+//! Cancellation (the [`RunOptions::cancel`] flag) is checked per batch while streaming, per tile,
+//! per halo growth, and inside the k-NN passes (installed with
+//! [`crate::neighbours::with_cancel`]), so a run stops soon after the flag is set.
 //!
 //! [`Report`] records what happened: counts, tiles, halo growths, bytes spilled, per-phase wall and
 //! CPU time, peak RSS.
@@ -37,7 +42,8 @@ use crate::denoise::cloud::{self, CloudRun, Globals};
 use crate::denoise::{self, DenoiseError, Method, Params, PhaseTiming, Stats, Timer, origin_of};
 use crate::geometry::ExactSum;
 use crate::io::{self, BATCH, Cloud, Extras, Format, IoError, SinkOptions, Source, SourceInfo};
-use crate::points::{FLAG_NOISE, PointBatch};
+use crate::neighbours::{NeighboursError, with_cancel};
+use crate::points::{FLAG_NOISE, PointBatch, in_range};
 use crate::tiling::plan::{Plan, Planner, SAMPLE};
 use crate::tiling::spill::{ResultMerge, SpillWriter, TileResult};
 use crate::tiling::{self, TilingError};
@@ -208,7 +214,8 @@ pub struct Report {
     pub points_out: u64,
     /// Faces carried through.
     pub faces: u64,
-    /// Non-finite points dropped from a point cloud.
+    /// Points dropped from a point cloud for a NaN, infinite or out-of-range coordinate (beyond
+    /// ±[`crate::points::MAX_COORD`]).
     pub dropped_non_finite: u64,
     /// Points found to be outliers (flagged or removed).
     pub outliers_found: u64,
@@ -377,12 +384,8 @@ fn run_mesh(job: &Job) -> Result<Report, PipelineError> {
     let mut timer = Timer::start();
     let mut cloud = Cloud::read(&job.input, job.input_format)?;
     timer.lap("read", &mut phases);
-    let out = denoise::denoise(&cloud.positions, cloud.faces(), &job.params).map_err(|e| {
-        PipelineError::Denoise {
-            path: job.input.clone(),
-            error: e,
-        }
-    })?;
+    let out = denoise::denoise(&cloud.positions, cloud.faces(), &job.params)
+        .map_err(|e| denoise_error(&job.input, e))?;
     let mut stats = out.stats;
     phases.merge(&Stats {
         phases: std::mem::take(&mut stats.phases),
@@ -401,8 +404,8 @@ fn run_mesh(job: &Job) -> Result<Report, PipelineError> {
     Ok(r)
 }
 
-/// True when `info`'s non-finite points must be written back (organized clouds) rather than
-/// dropped.
+/// True when `info`'s unprocessed points (failing [`in_range`]) must be written back unchanged
+/// (organized clouds) rather than dropped.
 fn keeps_non_finite(info: &SourceInfo) -> bool {
     info.is_organized()
 }
@@ -456,6 +459,32 @@ fn sink_options(job: &Job) -> SinkOptions {
     }
 }
 
+/// The error of the denoiser on `path`; its cancellation is the run's.
+fn denoise_error(path: &Path, error: DenoiseError) -> PipelineError {
+    match error {
+        DenoiseError::Neighbours(NeighboursError::Cancelled) => PipelineError::Cancelled,
+        error => PipelineError::Denoise {
+            path: path.to_path_buf(),
+            error,
+        },
+    }
+}
+
+/// The error of the tiled path on `path`; its cancellation is the run's.
+fn tiling_error(path: &Path, error: TilingError) -> PipelineError {
+    match error {
+        TilingError::Cancelled
+        | TilingError::Denoise {
+            error: DenoiseError::Neighbours(NeighboursError::Cancelled),
+            ..
+        } => PipelineError::Cancelled,
+        error => PipelineError::Tiling {
+            path: path.to_path_buf(),
+            error,
+        },
+    }
+}
+
 fn cancelled(opts: &RunOptions) -> Result<(), PipelineError> {
     if opts.cancel.load(Ordering::Relaxed) {
         Err(PipelineError::Cancelled)
@@ -472,14 +501,11 @@ fn run_points_in_memory(job: &Job, opts: &RunOptions) -> Result<Report, Pipeline
     timer.lap("read", &mut phases);
     cancelled(opts)?;
     let finite: Vec<usize> = (0..cloud.len())
-        .filter(|&i| cloud.positions[i].is_finite())
+        .filter(|&i| in_range(cloud.positions[i]))
         .collect();
     let pts: Vec<DVec3> = finite.iter().map(|&i| cloud.positions[i]).collect();
     let ties: Vec<u64> = finite.iter().map(|&i| i as u64).collect();
-    let denoise_err = |e| PipelineError::Denoise {
-        path: job.input.clone(),
-        error: e,
-    };
+    let denoise_err = |e| denoise_error(&job.input, e);
     if pts.is_empty() {
         return Err(denoise_err(DenoiseError::Empty));
     }
@@ -494,14 +520,15 @@ fn run_points_in_memory(job: &Job, opts: &RunOptions) -> Result<Report, Pipeline
     };
     opts.progress.phase("denoise", 1);
     let globals = if cloud::needs_globals(&job.params) {
-        cloud::globals_partial(&run, &job.params, |_| true)
+        with_cancel(&opts.cancel, || cloud::globals_partial(&run, &job.params, |_| true))
             .map_err(denoise_err)?
             .0
             .finish()
     } else {
         Globals::default()
     };
-    let result = cloud::run(&run, &job.params, &globals).map_err(denoise_err)?;
+    let result = with_cancel(&opts.cancel, || cloud::run(&run, &job.params, &globals))
+        .map_err(denoise_err)?;
     let mut stats = Stats::default();
     result.book(&pts, |_| true, &mut stats);
     stats.points = cloud.len() as u64;
@@ -691,15 +718,12 @@ fn clear_checkpoints(dir: &Path) -> Result<(), PipelineError> {
 
 /// Pass 2: every finite point to its owner's spill file, halo copies to its neighbours'.
 fn partition(job: &Job, opts: &RunOptions, plan: &Plan, dir: &Path) -> Result<u64, PipelineError> {
-    let tiling_err = |e| PipelineError::Tiling {
-        path: job.input.clone(),
-        error: e,
-    };
+    let tiling_err = |e| tiling_error(&job.input, e);
     let mut spill = SpillWriter::create(dir, plan.tiles.len()).map_err(tiling_err)?;
     let mut near = Vec::new();
     stream(job, opts, |b| {
         for (j, &p) in b.positions.iter().enumerate() {
-            if !p.is_finite() {
+            if !in_range(p) {
                 continue;
             }
             let i = b.start + j as u64;
@@ -722,10 +746,7 @@ fn run_tiled(
     info: &SourceInfo,
     per_point: u64,
 ) -> Result<Report, PipelineError> {
-    let tiling_err = |e| PipelineError::Tiling {
-        path: job.input.clone(),
-        error: e,
-    };
+    let tiling_err = |e| tiling_error(&job.input, e);
     let mut phases = Stats::default();
     let mut timer = Timer::start();
 
@@ -806,9 +827,10 @@ fn run_tiled(
         let mut sum = cloud::GlobalsPartial::default();
         for t in 0..plan.tiles.len() {
             cancelled(opts)?;
-            sum.merge(
-                &tiling::globals_of_tile(dir.path(), &plan, t, &job.params).map_err(tiling_err)?,
-            );
+            let partial = with_cancel(&opts.cancel, || {
+                tiling::globals_of_tile(dir.path(), &plan, t, &job.params)
+            });
+            sum.merge(&partial.map_err(tiling_err)?);
             opts.progress.advance(t as u64 + 1);
         }
         let g = sum.finish();
@@ -860,7 +882,9 @@ fn run_tiled(
         let (o, next) = std::thread::scope(|s| {
             let (path, plan) = (dir.path(), &plan);
             let reader = following.map(|n| s.spawn(move || tiling::load_tile(path, plan, n)));
-            let o = tiling::process_tile(path, plan, t, &job.params, &globals, pts);
+            let o = with_cancel(&opts.cancel, || {
+                tiling::process_tile(path, plan, t, &job.params, &globals, pts)
+            });
             let next = reader.map(|h| h.join().expect("the spill reader does not panic"));
             (o, next)
         });

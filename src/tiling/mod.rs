@@ -74,6 +74,9 @@ pub enum TilingError {
         /// The last halo tried.
         halo: f64,
     },
+    /// The cancellation flag installed with [`crate::neighbours::with_cancel`] was set.
+    #[error("cancelled")]
+    Cancelled,
 }
 
 /// How a tile went (saved beside its result file as part of the checkpoint).
@@ -97,6 +100,11 @@ pub struct TileOutcome {
 
 /// Largest halo tried, relative to the bounding-box diagonal, before giving up.
 const MAX_HALO_FRACTION: f64 = 1.0;
+
+/// Most halo doublings of one tile, whatever the plan says: the initial halo is at least 10⁻³ of
+/// the diagonal, so 2 × the diagonal is reached in 11; this only bounds the loop if the plan's
+/// numbers are degenerate.
+const MAX_HALO_GROWTHS: u32 = 64;
 
 /// Loads the points of tile `t` for the plan's halo: its spill file (owned points plus halo
 /// copies). Callers may run this ahead of [`process_tile`] to overlap reading with computing.
@@ -147,7 +155,12 @@ fn with_exact_halo<T>(
 ) -> Result<(T, Vec<TilePoint>, f64, u32), TilingError> {
     let mut halo = plan.halo;
     let mut growths = 0;
+    // The limit is finite: the plan's bounds hold only points within ±MAX_COORD.
+    let limit = MAX_HALO_FRACTION * plan.bounds.diagonal().max(f64::MIN_POSITIVE) * 2.0;
     loop {
+        if crate::neighbours::cancel_requested() {
+            return Err(TilingError::Cancelled);
+        }
         let pts = match preloaded.take() {
             Some(p) => p,
             None => load(dir, plan, t, halo)?,
@@ -178,7 +191,7 @@ fn with_exact_halo<T>(
         }
         growths += 1;
         halo *= 2.0;
-        if halo > MAX_HALO_FRACTION * plan.bounds.diagonal().max(f64::MIN_POSITIVE) * 2.0 {
+        if halo.is_nan() || halo > limit || growths > MAX_HALO_GROWTHS {
             return Err(TilingError::HaloLimit { tile: t, halo });
         }
     }

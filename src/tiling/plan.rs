@@ -68,7 +68,7 @@ pub struct Plan {
     pub origin: DVec3,
     /// All points read (finite or not).
     pub points: u64,
-    /// Finite points.
+    /// Points processed (passing [`crate::points::in_range`]).
     pub finite: u64,
     /// The split tree; node 0 is the root.
     pub nodes: Vec<Node>,
@@ -178,7 +178,7 @@ impl Planner {
     /// Sees the point with global index `i`.
     pub fn add(&mut self, i: u64, p: DVec3) {
         self.points += 1;
-        if !p.is_finite() {
+        if !crate::points::in_range(p) {
             return;
         }
         self.finite += 1;
@@ -201,7 +201,7 @@ impl Planner {
         self.points
     }
 
-    /// Finite points seen.
+    /// Points seen that are processed (passing [`crate::points::in_range`]).
     pub fn finite(&self) -> u64 {
         self.finite
     }
