@@ -520,10 +520,12 @@ fn run_points_in_memory(job: &Job, opts: &RunOptions) -> Result<Report, Pipeline
     };
     opts.progress.phase("denoise", 1);
     let globals = if cloud::needs_globals(&job.params) {
-        with_cancel(&opts.cancel, || cloud::globals_partial(&run, &job.params, |_| true))
-            .map_err(denoise_err)?
-            .0
-            .finish()
+        with_cancel(&opts.cancel, || {
+            cloud::globals_partial(&run, &job.params, |_| true)
+        })
+        .map_err(denoise_err)?
+        .0
+        .finish()
     } else {
         Globals::default()
     };
