@@ -257,6 +257,17 @@ fn taint(
     t
 }
 
+/// [`NeighboursError::Cancelled`] once the cancel flag installed on this thread
+/// ([`crate::neighbours::with_cancel`]) is set: checked between the passes of [`run`], so a
+/// cancelled run stops after the pass in flight.
+fn check_cancel() -> Result<(), DenoiseError> {
+    if crate::neighbours::cancel_requested() {
+        Err(crate::neighbours::NeighboursError::Cancelled.into())
+    } else {
+        Ok(())
+    }
+}
+
 /// Runs the point operator of `params` on `run`.
 ///
 /// # Errors
@@ -308,6 +319,7 @@ pub fn run(
         })
         .collect();
     timer.lap("neighbours", &mut stats);
+    check_cancel()?;
 
     let sched = params.schedule(false);
     let guard = params.method == Method::Qem && params.guard;
@@ -350,6 +362,7 @@ pub fn run(
                 sched.filter,
             );
             timer.lap("normals", &mut stats);
+            check_cancel()?;
             let g = Guard {
                 start: &frame.positions,
                 normals: &normals,
@@ -362,6 +375,7 @@ pub fn run(
             for _ in 0..sched.updates {
                 let step = guarded::step(&cur, &lists, &g, params);
                 cur = merge_step(step, &mut stayed);
+                check_cancel()?;
             }
             timer.lap("solve", &mut stats);
             continue;
@@ -384,11 +398,13 @@ pub fn run(
             _ => normals,
         };
         timer.lap("normals", &mut stats);
+        check_cancel()?;
         match params.method {
             Method::Qem => {
                 for _ in 0..sched.updates {
                     let step = qem::points_step(&cur, &lists, &limits, &normals, params);
                     cur = merge_step(step, &mut stayed);
+                    check_cancel()?;
                 }
             }
             Method::Bilateral => {
@@ -457,4 +473,25 @@ pub fn run_all(positions: &[DVec3], params: &Params) -> Result<super::Output, De
         positions: out,
         stats,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use std::sync::Arc;
+    use std::sync::atomic::AtomicBool;
+
+    use super::*;
+
+    #[test]
+    fn a_set_cancel_flag_stops_between_passes() {
+        assert!(check_cancel().is_ok());
+        let flag = Arc::new(AtomicBool::new(true));
+        let e = crate::neighbours::with_cancel(&flag, check_cancel).unwrap_err();
+        assert_eq!(
+            e,
+            DenoiseError::Neighbours(crate::neighbours::NeighboursError::Cancelled)
+        );
+        let flag = Arc::new(AtomicBool::new(false));
+        assert!(crate::neighbours::with_cancel(&flag, check_cancel).is_ok());
+    }
 }
