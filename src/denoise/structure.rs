@@ -15,15 +15,18 @@
 //!                                                  in both tangent directions)
 //!   else, most list members Surface     → Edge     (a crease or corner between surfaces)
 //!   else                                → Scatter  (vegetation, multipath, noise clouds)
-//!   own radius ≥ SPARSE × members' median radius → Sparse (isolated points, far stragglers)
 //!   all points coincident or < 3 points → Degenerate
 //! ```
 //!
+//! Before the eigenvalue tests, a point whose own k-NN radius is at least `SPARSE` times the
+//! median radius of its list members is Sparse (isolated points, far stragglers).
+//!
 //! The noise scale `s` of a point is the distance of its neighbourhood to its own fitted plane
 //! (`√(λ0/(n−3))`, the plane taking three degrees of freedom, so that lists of 8 and 16 estimate
-//! the same σ), or the RMS distance to its own fitted line for lines (`√((λ0+λ1)/n)`); [`noise_scale`] takes the
-//! median over the Surface and Line members of a point's list, so an edge point borrows the noise
-//! level of the faces around it instead of its own (large) two-plane residual.
+//! the same σ), or the RMS distance to its own fitted line for lines (`√((λ0+λ1)/n)`);
+//! [`noise_scale`] takes the median over the Surface and Line members of a point's list, so an
+//! edge point borrows the noise level of the faces around it instead of its own (large) two-plane
+//! residual.
 //!
 //! Every function here is a pure function of a point's list, so tiles reproduce it exactly.
 
