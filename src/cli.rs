@@ -151,10 +151,11 @@ pub struct DenoiseArgs {
     /// beyond the operator's own bound of 3 × the local noise.
     #[arg(long, value_name = "DISTANCE")]
     pub max_move: Option<f64>,
-    /// k-ring size of tangent planes in mesh mode (the vertex itself included).
+    /// k-ring size of tangent planes in mesh mode (the vertex itself included). Default 2.
     #[arg(long)]
     pub rings: Option<usize>,
-    /// Neighbourhood size in point mode (the point itself included); forces point mode.
+    /// Neighbourhood size in point mode (the point itself included); forces point mode. Default
+    /// 16 on point clouds; meshes run on k-rings unless it is given.
     #[arg(long)]
     pub knn: Option<usize>,
     /// Mesh vertex normals.
@@ -163,14 +164,14 @@ pub struct DenoiseArgs {
     /// How the quadric minimiser is found.
     #[arg(long, value_enum)]
     pub solve: Option<SolveArg>,
-    /// Relative eigenvalue cut-off of the robust solve.
+    /// Relative eigenvalue cut-off of the robust solve (default 0.01).
     #[arg(long)]
     pub eps: Option<f64>,
-    /// Step penalty of the regularised solve.
+    /// Step penalty of the regularised solve (default 0.1).
     #[arg(long)]
     pub lambda: Option<f64>,
-    /// Cycles (QEM: normal filter then updates; 0 chooses from the data on meshes) or passes
-    /// (bilateral, default 3).
+    /// Cycles (QEM: normal filter then updates; default 0, which chooses from the data on meshes
+    /// and is 1 on clouds) or passes (bilateral, default 3).
     #[arg(long)]
     pub iterations: Option<usize>,
     /// Worker threads (default: all cores); the output is identical for any value.
