@@ -306,8 +306,10 @@ pub fn run(
     drop(index);
     // The step bound of each point: the largest k-NN radius among its neighbours, i.e. the scale
     // at which the surface around it is sampled. An isolated point's own radius reaches the
-    // distant surface it would be projected onto; its neighbours' radii do not.
-    let limits: Vec<f64> = (0..n)
+    // distant surface it would be projected onto; its neighbours' radii do not. The guarded
+    // operator bounds its steps by the noise instead and needs none.
+    let guard = guarded_qem(params);
+    let limits: Vec<f64> = (0..if guard { 0 } else { n })
         .into_par_iter()
         .map(|j| {
             lists
@@ -322,7 +324,6 @@ pub fn run(
     check_cancel()?;
 
     let sched = params.schedule(false);
-    let guard = params.method == Method::Qem && params.guard;
     let mut cur = frame.positions.clone();
     let mut stayed = vec![0u8; n];
     let mut degenerate = vec![false; n];

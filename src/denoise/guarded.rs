@@ -27,7 +27,7 @@ use glam::DVec3;
 use rayon::prelude::*;
 
 use super::Params;
-use super::qem::stay;
+use super::qem::{bent_normal, stay};
 use super::structure::{LocalFit, Structure};
 use crate::geometry::{Quadric, SymMat3};
 use crate::neighbours::Neighbourhoods;
@@ -44,10 +44,6 @@ pub const GLOBAL: f64 = 1.0;
 /// sphere and cube within 9 % and 4 % of the unguarded operator (1.0: 41 % and 24 %), at
 /// per-class ratios on the real scans a few hundredths higher (docs/DECISIONS.md).
 pub const WIENER: f64 = 1.3;
-
-/// Cosine of the largest angle between a point's normal and a neighbour's for which the
-/// neighbour's plane uses the bisecting normal (25°), as in [`super::qem::bent_quadric`].
-const BEND_COS: f64 = 0.906_307_787_036_649_9;
 
 /// What the guarded step reads, per point, besides positions.
 #[derive(Debug, Clone, Copy)]
@@ -117,18 +113,11 @@ fn quadric(pos: &[DVec3], g: &Guard, lists: &Neighbourhoods, i: usize) -> Quadri
             let ni = g.normals[i];
             for &u in lists.get(i) {
                 let u = u as usize;
-                let mut nu = g.normals[u];
+                let nu = g.normals[u];
                 if nu == DVec3::ZERO || !g.classes[u].takes_planes() {
                     continue;
                 }
-                if nu.dot(ni) < 0.0 {
-                    nu = -nu;
-                }
-                let n = if ni != DVec3::ZERO && ni.dot(nu) > BEND_COS {
-                    (ni + nu).normalize()
-                } else {
-                    nu
-                };
+                let n = bent_normal(ni, nu);
                 let p = pos[u] - v;
                 let w = agree(n.dot(p).abs(), g.noise[u]);
                 if w > 0.0 {

@@ -212,30 +212,35 @@ pub fn points_step(
 /// neighbour's plane uses the bisecting normal (25°).
 const BEND_COS: f64 = 0.906_307_787_036_649_9;
 
+/// The curvature-corrected normal of neighbour normal `nu` seen from a point of normal `ni`:
+/// `nu` turned to agree with `ni` (PCA normals have no sign), then the bisector of the two where
+/// they are within 25°. Zero when `nu` is zero.
+#[inline]
+pub fn bent_normal(ni: DVec3, nu: DVec3) -> DVec3 {
+    let nu = if nu.dot(ni) < 0.0 { -nu } else { nu };
+    if nu != DVec3::ZERO && ni != DVec3::ZERO && ni.dot(nu) > BEND_COS {
+        (ni + nu).normalize()
+    } else {
+        nu
+    }
+}
+
 /// The summed quadric of point `i` over `neighbourhood` with curvature-corrected planes: a
 /// neighbour `u` nearly parallel to `i` contributes the plane through `u` whose normal bisects
-/// `n_i` and `n_u`. On a sphere that plane passes through `i` exactly, so repeated projection
-/// no longer pushes convex surfaces outward; across a sharp edge (larger angles) the neighbour's
-/// own plane is kept so the edge stays sharp.
+/// `n_i` and `n_u` ([`bent_normal`]). On a sphere that plane passes through `i` exactly, so
+/// repeated projection no longer pushes convex surfaces outward; across a sharp edge (larger
+/// angles) the neighbour's own plane is kept so the edge stays sharp.
 #[inline]
 pub fn bent_quadric(pos: &[DVec3], normals: &[DVec3], i: usize, neighbourhood: &[u32]) -> Quadric {
     let v = pos[i];
     let ni = normals[i];
     let mut q = Quadric::ZERO;
     for &u in neighbourhood {
-        let mut nu = normals[u as usize];
+        let nu = normals[u as usize];
         if nu == DVec3::ZERO {
             continue;
         }
-        if nu.dot(ni) < 0.0 {
-            nu = -nu;
-        }
-        let n = if ni != DVec3::ZERO && ni.dot(nu) > BEND_COS {
-            (ni + nu).normalize()
-        } else {
-            nu
-        };
-        q.add_plane(n, pos[u as usize] - v, 1.0);
+        q.add_plane(bent_normal(ni, nu), pos[u as usize] - v, 1.0);
     }
     q
 }
