@@ -442,6 +442,16 @@ pub fn in_range(p: DVec3) -> bool {
     p.x.abs() <= MAX_COORD && p.y.abs() <= MAX_COORD && p.z.abs() <= MAX_COORD
 }
 
+/// The sampling key of global index `i`: a 64-bit mix (a bijection, so keys never tie). The
+/// points with the smallest keys are a uniform sample that depends on nothing but the indices:
+/// the tiling planner and the in-memory path draw the same one.
+pub fn sample_key(i: u64) -> u64 {
+    let mut z = i.wrapping_add(0x9e37_79b9_7f4a_7c15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+    z ^ (z >> 31)
+}
+
 /// An axis-aligned bounding box; empty boxes have `min > max`.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Aabb {

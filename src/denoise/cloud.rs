@@ -25,6 +25,10 @@
 //! normals of the list members, whose PCA reads *their* lists (2 hops); a bilateral pass reads only
 //! the list of the point (1 hop). The caller grows the halo until every owned point is exact.
 //!
+//! Every list is capped at the cloud's isolation radius ([`super::isolation`]): a point with
+//! fewer than k points that near is isolated, stays where it is and lends no plane to anyone,
+//! so no result depends on anything farther than that radius per hop.
+//!
 //! Global scalars (the bilateral σc, the mean spacing) come from exact sums ([`ExactSum`]) that
 //! merge across tiles to the same bits as over the whole cloud.
 
@@ -110,7 +114,7 @@ pub fn globals_partial(
     } else {
         2
     };
-    let (frame, lists, radii, index) = graph(run, k)?;
+    let (frame, lists, radii, index, isolated) = graph(run, k)?;
     let exact_f = taint(run.region.as_ref(), &frame.positions, &lists, &radii, 0);
     let near = if guarded_qem(params) {
         super::structure::near_residuals(&frame.positions, &lists)
@@ -122,7 +126,8 @@ pub fn globals_partial(
     for (j, &i) in frame.order.iter().enumerate() {
         let i = i as usize;
         exact[i] = !exact_f[j];
-        if !counted(i) {
+        // An isolated point has no spacing or noise of its own: it is never smoothed.
+        if !counted(i) || isolated[j] {
             continue;
         }
         if params.method == Method::Bilateral
@@ -162,6 +167,9 @@ pub struct CloudRun<'a> {
     pub origin: DVec3,
     /// The box holding every point the caller has, `None` for the whole cloud.
     pub region: Option<Aabb>,
+    /// The cloud's isolation radius ([`super::isolation::radius`]), the same for every tile;
+    /// `None` caps no list.
+    pub isolation: Option<f64>,
 }
 
 /// Per-point results of a run, in the run's input order.
@@ -207,16 +215,19 @@ impl CloudResult {
     }
 }
 
+/// The k-NN graph of a run in spatial order, capped at the isolation radius.
+type Graph = (Frame, Neighbourhoods, Vec<f64>, KnnIndex, Vec<bool>);
+
 /// Builds the k-NN graph of a run in spatial order; returns the frame, the lists (frame
-/// indices) and the squared radius of each list.
-fn graph(
-    run: &CloudRun,
-    k: usize,
-) -> Result<(Frame, Neighbourhoods, Vec<f64>, KnnIndex), DenoiseError> {
+/// indices, capped at the run's isolation radius), the squared radius of each list (the cap for
+/// a capped one), the index, and which points are isolated (capped lists).
+fn graph(run: &CloudRun, k: usize) -> Result<Graph, DenoiseError> {
     let frame = Frame::new(run.positions, Some(run.ties));
     let index = KnnIndex::build_with_ties(&frame.positions, run.origin, frame.ties.clone())?;
     let (lists, radii) = index.knn_all(k)?;
-    Ok((frame, lists, radii, index))
+    let (lists, radii, isolated) =
+        super::isolation::cap_lists(lists, radii, run.isolation, |i, u| index.dist2(i, u));
+    Ok((frame, lists, radii, index, isolated))
 }
 
 /// True where the k-NN ball of a point lies strictly inside `region` (so its list is complete).
@@ -280,7 +291,7 @@ pub fn run(
     let mut timer = Timer::start();
     let mut stats = Stats::default();
     let k = params.k();
-    let (frame, lists, radii, index) = graph(run, k)?;
+    let (frame, lists, radii, index, isolated) = graph(run, k)?;
     let n = frame.positions.len();
     let tainted = taint(
         run.region.as_ref(),
@@ -293,13 +304,20 @@ pub fn run(
         .into_par_iter()
         .map(|j| is_duplicate(&frame.positions, &lists, &frame.ties, j))
         .collect();
+    // The outlier statistic; a capped list counts each missing member at the isolation radius
+    // (so a far outlier scores the radius, not its distance to the scene).
     let knn_mean: Vec<f64> = (0..n)
         .into_par_iter()
         .map(|j| {
             let others = lists.get(j).iter().filter(|&&u| u as usize != j);
-            let (sum, count) = others.fold((0.0, 0usize), |(s, c), &u| {
+            let (mut sum, mut count) = others.fold((0.0, 0usize), |(s, c), &u| {
                 (s + index.dist2(j, u as usize).sqrt(), c + 1)
             });
+            if isolated[j] {
+                let missing = (k - 1).saturating_sub(count);
+                sum += missing as f64 * run.isolation.unwrap_or(0.0);
+                count += missing;
+            }
             if count == 0 { 0.0 } else { sum / count as f64 }
         })
         .collect();
@@ -328,9 +346,18 @@ pub fn run(
     let mut stayed = vec![0u8; n];
     let mut degenerate = vec![false; n];
     let mut structure = None;
+    let hold = |cur: &mut Vec<DVec3>, stayed: &mut [u8]| {
+        for (j, _) in isolated.iter().enumerate().filter(|(_, i)| **i) {
+            cur[j] = frame.positions[j];
+            stayed[j] |= qem::stay::ISOLATED;
+        }
+    };
     for pass in 0..sched.cycles {
         if guard {
-            let fits = local_fits(&cur, &lists);
+            let mut fits = local_fits(&cur, &lists);
+            for (f, _) in fits.iter_mut().zip(&isolated).filter(|(_, i)| **i) {
+                *f = super::structure::LocalFit::isolated();
+            }
             let classes = classify(&fits, &lists, &radii);
             let noise = noise_scale(&fits, &lists);
             let bound: Vec<f64> = noise
@@ -376,16 +403,21 @@ pub fn run(
             for _ in 0..sched.updates {
                 let step = guarded::step(&cur, &lists, &g, params);
                 cur = merge_step(step, &mut stayed);
+                hold(&mut cur, &mut stayed);
                 check_cancel()?;
             }
             timer.lap("solve", &mut stats);
             continue;
         }
-        let (normals, _) = pca_normals(&cur, &lists);
+        let (mut normals, _) = pca_normals(&cur, &lists);
         if pass == 0 {
             for (d, (nrm, p)) in degenerate.iter_mut().zip(normals.iter().zip(&cur)) {
                 *d = *nrm == DVec3::ZERO && p.is_finite();
             }
+        }
+        // An isolated point lends no plane.
+        for (nrm, _) in normals.iter_mut().zip(&isolated).filter(|(_, i)| **i) {
+            *nrm = DVec3::ZERO;
         }
         let normals = match params.method {
             Method::Qem if sched.filter > 0 => filter_point_normals(
@@ -405,12 +437,14 @@ pub fn run(
                 for _ in 0..sched.updates {
                     let step = qem::points_step(&cur, &lists, &limits, &normals, params);
                     cur = merge_step(step, &mut stayed);
+                    hold(&mut cur, &mut stayed);
                     check_cancel()?;
                 }
             }
             Method::Bilateral => {
                 let step = bilateral::points_step(&cur, &lists, &normals, globals.spacing);
                 cur = merge_step(step, &mut stayed);
+                hold(&mut cur, &mut stayed);
             }
         }
         timer.lap("solve", &mut stats);
@@ -447,11 +481,13 @@ pub fn run_all(positions: &[DVec3], params: &Params) -> Result<super::Output, De
         .collect();
     let pts: Vec<DVec3> = finite.iter().map(|&i| positions[i]).collect();
     let ties: Vec<u64> = finite.iter().map(|&i| i as u64).collect();
+    let origin = super::origin_of(&pts);
     let r = CloudRun {
         positions: &pts,
         ties: &ties,
-        origin: super::origin_of(&pts),
+        origin,
         region: None,
+        isolation: super::isolation::of_cloud(&pts, &ties, origin, params.k()),
     };
     let mut timer = Timer::start();
     let globals = if needs_globals(params) {

@@ -22,6 +22,7 @@ pub mod cloud;
 pub mod filtered;
 pub mod frame;
 pub mod guarded;
+pub mod isolation;
 pub mod normals;
 pub mod qem;
 mod stats;

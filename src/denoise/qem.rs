@@ -24,6 +24,9 @@ pub mod stay {
     /// The guarded step's total displacement was clamped to the bound of the local noise (or to
     /// `--max-move`).
     pub const BOUNDED: u8 = 4;
+    /// Fewer than k points lie within the isolation radius: the point keeps its input position
+    /// ([`crate::denoise::isolation`]).
+    pub const ISOLATED: u8 = 8;
 }
 
 /// The new position of `v` from the quadric `q` (relative to `v`), and why it stayed put, if it

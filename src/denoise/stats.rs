@@ -43,6 +43,9 @@ pub struct Stats {
     /// Points whose displacement was clamped to the bound of their local noise or `--max-move`.
     #[serde(default)]
     pub bounded: u64,
+    /// Points with fewer than k points within the isolation radius, kept in place.
+    #[serde(default)]
+    pub isolated: u64,
     /// Largest distance between a point's input and output positions.
     pub max_step: f64,
     /// Points per neighbourhood class (point clouds with the guarded operator).
@@ -73,6 +76,7 @@ impl Stats {
             self.singular += (stayed[i] & 1 != 0) as u64;
             self.far += (stayed[i] & 2 != 0) as u64;
             self.bounded += (stayed[i] & 4 != 0) as u64;
+            self.isolated += (stayed[i] & 8 != 0) as u64;
             self.displacement.add(step);
         }
         self.displacement.refresh();
@@ -85,6 +89,7 @@ impl Stats {
         self.singular += o.singular;
         self.far += o.far;
         self.bounded += o.bounded;
+        self.isolated += o.isolated;
         self.structure.merge(&o.structure);
         self.displacement.merge(&o.displacement);
         self.unreferenced += o.unreferenced;

@@ -123,6 +123,20 @@ pub struct LocalFit {
     pub near: f64,
 }
 
+impl LocalFit {
+    /// The fit of an isolated point ([`crate::denoise::isolation`]): sparse, no plane, no line,
+    /// no residual.
+    pub fn isolated() -> LocalFit {
+        LocalFit {
+            own: Structure::Sparse,
+            normal: DVec3::ZERO,
+            axis: DVec3::ZERO,
+            residual: 0.0,
+            near: 0.0,
+        }
+    }
+}
+
 /// Points of the small-scale fit behind [`LocalFit::near`], the point itself included.
 pub const NEAR: usize = 8;
 

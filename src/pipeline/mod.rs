@@ -512,11 +512,13 @@ fn run_points_in_memory(job: &Job, opts: &RunOptions) -> Result<Report, Pipeline
     if pts.len() > 1 && pts.iter().all(|p| *p == pts[0]) {
         return Err(denoise_err(DenoiseError::AllIdentical(pts.len())));
     }
+    let origin = origin_of(&pts);
     let run = CloudRun {
         positions: &pts,
         ties: &ties,
-        origin: origin_of(&pts),
+        origin,
         region: None,
+        isolation: crate::denoise::isolation::of_cloud(&pts, &ties, origin, job.params.k()),
     };
     opts.progress.phase("denoise", 1);
     let globals = if cloud::needs_globals(&job.params) {

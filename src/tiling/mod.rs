@@ -145,11 +145,13 @@ fn load(dir: &Path, plan: &Plan, t: usize, halo: f64) -> Result<Vec<TilePoint>, 
 }
 
 /// Runs `f` on tile `t`'s points with the smallest halo (starting at the plan's, doubling) for
-/// which `f` reports every owned point exact.
+/// which `f` reports every owned point exact. Results that depend on `hops` hops of capped lists
+/// are exact at [`plan::sufficient_halo`], so the halo never grows past it.
 fn with_exact_halo<T>(
     dir: &Path,
     plan: &Plan,
     t: usize,
+    hops: usize,
     mut preloaded: Option<Vec<TilePoint>>,
     mut f: impl FnMut(&[TilePoint], &CloudRun) -> Result<(T, bool), TilingError>,
 ) -> Result<(T, Vec<TilePoint>, f64, u32), TilingError> {
@@ -157,6 +159,7 @@ fn with_exact_halo<T>(
     let mut growths = 0;
     // The limit is finite: the plan's bounds hold only points within ±MAX_COORD.
     let limit = MAX_HALO_FRACTION * plan.bounds.diagonal().max(f64::MIN_POSITIVE) * 2.0;
+    let sufficient = plan::sufficient_halo(plan.isolation, hops);
     loop {
         if crate::neighbours::cancel_requested() {
             return Err(TilingError::Cancelled);
@@ -172,6 +175,7 @@ fn with_exact_halo<T>(
             ties: &ties,
             origin: plan.origin,
             region: Some(plan.region(t, halo)),
+            isolation: plan.isolation,
         };
         let owned = pts.iter().filter(|p| p.owned).count();
         if owned == 0 {
@@ -190,7 +194,11 @@ fn with_exact_halo<T>(
             return Ok((value, pts, halo, growths));
         }
         growths += 1;
-        halo *= 2.0;
+        if sufficient.is_some_and(|s| halo >= s) {
+            // Cannot happen: at the sufficient halo every list and its members are loaded.
+            return Err(TilingError::HaloLimit { tile: t, halo });
+        }
+        halo = sufficient.map_or(halo * 2.0, |s| (halo * 2.0).min(s));
         if halo.is_nan() || halo > limit || growths > MAX_HALO_GROWTHS {
             return Err(TilingError::HaloLimit { tile: t, halo });
         }
@@ -207,7 +215,7 @@ pub fn globals_of_tile(
     t: usize,
     params: &Params,
 ) -> Result<GlobalsPartial, TilingError> {
-    let (sum, _, _, _) = with_exact_halo(dir, plan, t, None, |pts, run| {
+    let (sum, _, _, _) = with_exact_halo(dir, plan, t, 0, None, |pts, run| {
         if pts.is_empty() {
             return Ok((GlobalsPartial::default(), true));
         }
@@ -236,19 +244,21 @@ pub fn process_tile(
     globals: &Globals,
     preloaded: Option<Vec<TilePoint>>,
 ) -> Result<TileOutcome, TilingError> {
-    let (result, pts, halo, growths) = with_exact_halo(dir, plan, t, preloaded, |pts, run| {
-        if pts.is_empty() {
-            return Ok((None, true));
-        }
-        if pts.len() < params.k() {
-            // Too few points to form one neighbourhood: not exact yet, grow the halo.
-            return Ok((None, false));
-        }
-        let r = cloud::run(run, params, globals)
-            .map_err(|e| TilingError::Denoise { tile: t, error: e })?;
-        let ok = pts.iter().zip(&r.exact).all(|(p, e)| !p.owned || *e);
-        Ok((Some(r), ok))
-    })?;
+    let hops = cloud::reach(params);
+    let (result, pts, halo, growths) =
+        with_exact_halo(dir, plan, t, hops, preloaded, |pts, run| {
+            if pts.is_empty() {
+                return Ok((None, true));
+            }
+            if pts.len() < params.k() {
+                // Too few points to form one neighbourhood: not exact yet, grow the halo.
+                return Ok((None, false));
+            }
+            let r = cloud::run(run, params, globals)
+                .map_err(|e| TilingError::Denoise { tile: t, error: e })?;
+            let ok = pts.iter().zip(&r.exact).all(|(p, e)| !p.owned || *e);
+            Ok((Some(r), ok))
+        })?;
     let mut outcome = TileOutcome {
         halo,
         halo_growths: growths,

@@ -21,11 +21,10 @@ use std::collections::BinaryHeap;
 
 use glam::DVec3;
 
-use crate::neighbours::KnnIndex;
 use crate::points::Aabb;
 
-/// Upper bound on the planning sample.
-pub const SAMPLE: usize = 1 << 18;
+/// Upper bound on the planning sample (the sample the isolation radius is drawn from).
+pub const SAMPLE: usize = crate::denoise::isolation::SAMPLE;
 
 /// A node of the split tree.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -76,6 +75,10 @@ pub struct Plan {
     pub tiles: Vec<Tile>,
     /// Initial halo width (in coordinate units).
     pub halo: f64,
+    /// The cloud's isolation radius ([`crate::denoise::isolation`]), drawn from the same sample
+    /// as the in-memory path draws it; it bounds every list, hence the halo a tile can need.
+    #[serde(default)]
+    pub isolation: Option<f64>,
 }
 
 impl Plan {
@@ -144,14 +147,6 @@ impl Plan {
     }
 }
 
-/// A 64-bit mix of the global index: the sampling key.
-fn hash(i: u64) -> u64 {
-    let mut z = i.wrapping_add(0x9e37_79b9_7f4a_7c15);
-    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-    z ^ (z >> 31)
-}
-
 /// Accumulates pass 1.
 #[derive(Debug, Clone)]
 pub struct Planner {
@@ -183,7 +178,7 @@ impl Planner {
         }
         self.finite += 1;
         self.bounds.grow(p);
-        let h = hash(i);
+        let h = crate::points::sample_key(i);
         if self.sample.len() < self.capacity {
             self.sample
                 .push((h, i, [p.x.to_bits(), p.y.to_bits(), p.z.to_bits()]));
@@ -253,6 +248,9 @@ impl Planner {
             &mut tiles,
         );
         let halo = halo_estimate(&pts, origin, self.finite, k, reach, &bounds);
+        // The in-memory path draws the same radius from the same sample when the capacity is
+        // [`SAMPLE`], as the pipeline's is.
+        let isolation = crate::denoise::isolation::radius(&pts, origin, self.finite, k);
         Plan {
             bounds,
             origin,
@@ -261,6 +259,7 @@ impl Planner {
             nodes,
             tiles,
             halo,
+            isolation,
         }
     }
 }
@@ -332,9 +331,9 @@ fn split(
     at
 }
 
-/// Initial halo: `(reach + 1)` k-NN radii, estimated from the sample's k-NN radii scaled to the
-/// full density as for a surface (radius ∝ 1/√density), times a safety factor of 1.5. Only the
-/// speed depends on it: tiles whose halo proves too small are redone with a larger one.
+/// Initial halo: `(reach + 1)` typical k-NN radii ([`crate::denoise::isolation::typical_radius`])
+/// times a safety factor of 1.5. Only the speed depends on it: tiles whose halo proves too small
+/// are redone with a larger one.
 fn halo_estimate(
     sample: &[DVec3],
     origin: DVec3,
@@ -343,31 +342,26 @@ fn halo_estimate(
     reach: usize,
     bounds: &Aabb,
 ) -> f64 {
-    let ks = 8.min(sample.len().saturating_sub(1));
     let fallback = bounds.diagonal() * 1e-3;
-    if ks < 2 {
-        return fallback;
+    match crate::denoise::isolation::typical_radius(sample, origin, finite, k) {
+        Some(r_k) => {
+            let h = (reach + 1) as f64 * r_k * 1.5;
+            if h > 0.0 && h.is_finite() {
+                h
+            } else {
+                fallback
+            }
+        }
+        None => fallback,
     }
-    let Ok(index) = KnnIndex::build(sample, origin) else {
-        return fallback;
-    };
-    let mut radii: Vec<f64> = (0..sample.len())
-        .step_by((sample.len() / 4096).max(1))
-        .map(|i| {
-            let mut v = Vec::new();
-            index.knn_of(i, ks + 1, &mut v).sqrt()
-        })
-        .collect();
-    radii.sort_by(f64::total_cmp);
-    let r_sample = radii[radii.len() / 2];
-    let fraction = sample.len() as f64 / finite.max(1) as f64;
-    let r_k = r_sample * (k as f64 * fraction / ks as f64).sqrt();
-    let h = (reach + 1) as f64 * r_k * 1.5;
-    if h > 0.0 && h.is_finite() {
-        h
-    } else {
-        fallback
-    }
+}
+
+/// The halo with which every owned result of a tile is provably exact when lists reach at most
+/// `isolation` and results depend on `hops` hops of them: a point farther than `(hops + 1) ·
+/// isolation` inside the region's faces has an exact list, and so have its members, `hops` deep.
+/// The small margin covers the rounding of [`crate::denoise::cloud`]'s inside test.
+pub fn sufficient_halo(isolation: Option<f64>, hops: usize) -> Option<f64> {
+    isolation.map(|r| (hops + 1) as f64 * r * (1.0 + 1e-6))
 }
 
 #[cfg(test)]
@@ -377,8 +371,8 @@ mod tests {
     fn planner(n: u64) -> Planner {
         let mut p = Planner::new(4096);
         for i in 0..n {
-            let x = (hash(i) % 1000) as f64;
-            let y = (hash(i + 7) % 1000) as f64;
+            let x = (crate::points::sample_key(i) % 1000) as f64;
+            let y = (crate::points::sample_key(i + 7) % 1000) as f64;
             p.add(i, DVec3::new(x, y, (x * 0.01).sin()));
         }
         p.add(n, DVec3::NAN);
@@ -392,8 +386,8 @@ mod tests {
         assert_eq!((plan.points, plan.finite), (50_001, 50_000));
         for i in 0..2000u64 {
             let p = DVec3::new(
-                (hash(i * 3) % 1000) as f64,
-                (hash(i * 5) % 1000) as f64,
+                (crate::points::sample_key(i * 3) % 1000) as f64,
+                (crate::points::sample_key(i * 5) % 1000) as f64,
                 0.3,
             );
             let t = plan.owner(p);
@@ -427,8 +421,8 @@ mod tests {
         for (n, target) in [(50_000u64, 7_000u64), (50_000, 5_000), (200_000, 9_000)] {
             let mut p = Planner::new(4096);
             for i in 0..n {
-                let x = (hash(i) % 1_000_000) as f64 * 1e-3;
-                let y = (hash(i + 7) % 1_000_000) as f64 * 1e-3;
+                let x = (crate::points::sample_key(i) % 1_000_000) as f64 * 1e-3;
+                let y = (crate::points::sample_key(i + 7) % 1_000_000) as f64 * 1e-3;
                 p.add(i, DVec3::new(x, y, (x * 0.01).sin()));
             }
             let plan = p.finish(target, 16, 2);
