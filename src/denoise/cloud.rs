@@ -115,7 +115,7 @@ pub fn globals_partial(
         2
     };
     let (frame, lists, radii, index, isolated) = graph(run, k)?;
-    let exact_f = taint(run.region.as_ref(), &frame.positions, &lists, &radii, 0);
+    let exact_f = taint(run, &frame.positions, &lists, &radii, 0);
     let near = if guarded_qem(params) {
         super::structure::near_residuals(&frame.positions, &lists)
     } else {
@@ -157,7 +157,7 @@ pub fn reach(params: &Params) -> usize {
 }
 
 /// The points of one run.
-#[derive(Debug, Clone, Copy)]
+#[derive(Clone, Copy)]
 pub struct CloudRun<'a> {
     /// Finite positions.
     pub positions: &'a [DVec3],
@@ -170,6 +170,10 @@ pub struct CloudRun<'a> {
     /// The cloud's isolation radius ([`super::isolation::radius`]), the same for every tile;
     /// `None` caps no list.
     pub isolation: Option<f64>,
+    /// For a tile: whether the ball (centre, squared radius) holds no point the caller does not
+    /// have, for balls that leave `region` (the tiling's occupancy grid proves it). `None`: only
+    /// balls inside `region` are complete.
+    pub complete: Option<&'a (dyn Fn(DVec3, f64) -> bool + Sync)>,
 }
 
 /// Per-point results of a run, in the run's input order.
@@ -240,20 +244,23 @@ fn inside(region: &Aabb, p: DVec3, r2: f64) -> bool {
 }
 
 /// Points whose result may differ from the whole-cloud result after `hops` hops: seeded by the
-/// points whose k-NN ball leaves the region, spread to every point whose list holds a tainted one.
+/// points whose k-NN ball leaves the region (and is not proven complete), spread to every point
+/// whose list holds a tainted one.
 fn taint(
-    region: Option<&Aabb>,
+    run: &CloudRun,
     pos: &[DVec3],
     lists: &Neighbourhoods,
     radii: &[f64],
     hops: usize,
 ) -> Vec<bool> {
-    let Some(region) = region else {
+    let Some(region) = run.region.as_ref() else {
         return vec![false; pos.len()];
     };
     let mut t: Vec<bool> = (0..pos.len())
         .into_par_iter()
-        .map(|i| !inside(region, pos[i], radii[i]))
+        .map(|i| {
+            !inside(region, pos[i], radii[i]) && !run.complete.is_some_and(|c| c(pos[i], radii[i]))
+        })
         .collect();
     for _ in 0..hops {
         let next: Vec<bool> = (0..pos.len())
@@ -293,13 +300,7 @@ pub fn run(
     let k = params.k();
     let (frame, lists, radii, index, isolated) = graph(run, k)?;
     let n = frame.positions.len();
-    let tainted = taint(
-        run.region.as_ref(),
-        &frame.positions,
-        &lists,
-        &radii,
-        reach(params),
-    );
+    let tainted = taint(run, &frame.positions, &lists, &radii, reach(params));
     let duplicate: Vec<bool> = (0..n)
         .into_par_iter()
         .map(|j| is_duplicate(&frame.positions, &lists, &frame.ties, j))
@@ -488,6 +489,7 @@ pub fn run_all(positions: &[DVec3], params: &Params) -> Result<super::Output, De
         origin,
         region: None,
         isolation: super::isolation::of_cloud(&pts, &ties, origin, params.k()),
+        complete: None,
     };
     let mut timer = Timer::start();
     let globals = if needs_globals(params) {

@@ -44,6 +44,7 @@ use crate::geometry::ExactSum;
 use crate::io::{self, BATCH, Cloud, Extras, Format, IoError, SinkOptions, Source, SourceInfo};
 use crate::neighbours::{NeighboursError, with_cancel};
 use crate::points::{FLAG_NOISE, PointBatch, in_range};
+use crate::tiling::occupancy::Occupancy;
 use crate::tiling::plan::{Plan, Planner, SAMPLE};
 use crate::tiling::spill::{ResultMerge, SpillWriter, TileResult};
 use crate::tiling::{self, TilingError};
@@ -519,6 +520,7 @@ fn run_points_in_memory(job: &Job, opts: &RunOptions) -> Result<Report, Pipeline
         origin,
         region: None,
         isolation: crate::denoise::isolation::of_cloud(&pts, &ties, origin, job.params.k()),
+        complete: None,
     };
     opts.progress.phase("denoise", 1);
     let globals = if cloud::needs_globals(&job.params) {
@@ -721,14 +723,25 @@ fn clear_checkpoints(dir: &Path) -> Result<(), PipelineError> {
 }
 
 /// Pass 2: every finite point to its owner's spill file, halo copies to its neighbours'.
-fn partition(job: &Job, opts: &RunOptions, plan: &Plan, dir: &Path) -> Result<u64, PipelineError> {
+/// Pass 2: writes every processed point to its owner's spill file and its halo copies to the
+/// others', and counts the points per cell of the occupancy grid (cells of the isolation radius).
+fn partition(
+    job: &Job,
+    opts: &RunOptions,
+    plan: &Plan,
+    dir: &Path,
+) -> Result<(u64, Option<Occupancy>), PipelineError> {
     let tiling_err = |e| tiling_error(&job.input, e);
     let mut spill = SpillWriter::create(dir, plan.tiles.len()).map_err(tiling_err)?;
     let mut near = Vec::new();
+    let mut occupancy = plan.isolation.map(|r| Occupancy::new(r, plan.origin));
     stream(job, opts, |b| {
         for (j, &p) in b.positions.iter().enumerate() {
             if !in_range(p) {
                 continue;
+            }
+            if let Some(o) = &mut occupancy {
+                o.add(p);
             }
             let i = b.start + j as u64;
             let owner = plan.owner(p);
@@ -741,7 +754,7 @@ fn partition(job: &Job, opts: &RunOptions, plan: &Plan, dir: &Path) -> Result<u6
         }
         Ok(())
     })?;
-    spill.finish().map_err(tiling_err)
+    Ok((spill.finish().map_err(tiling_err)?, occupancy))
 }
 
 fn run_tiled(
@@ -803,18 +816,28 @@ fn run_tiled(
     let spilled_marker = dir.path().join("spill.done");
     let resume = load_json::<tiling::plan::Plan>(&plan_path).is_some_and(|p| p == plan)
         && spilled_marker.exists();
+    // The occupancy grid is saved before the marker, so a resumed run finds it.
+    let occupancy_path = dir.path().join("occupancy.json");
     let mut bytes: u64 = if resume {
         load_json(&spilled_marker).unwrap_or(0)
     } else {
         0
     };
-    if !resume {
+    let occupancy = if resume {
+        // Only the speed depends on it: a missing grid proves nothing and costs halo growth.
+        load_json::<Occupancy>(&occupancy_path)
+    } else {
         clear_checkpoints(dir.path())?;
         save_json(&plan_path, &plan)?;
         opts.progress.phase("partition", plan.points);
-        bytes = partition(job, opts, &plan, dir.path())?;
+        let (b, occupancy) = partition(job, opts, &plan, dir.path())?;
+        bytes = b;
+        if let Some(o) = &occupancy {
+            save_json(&occupancy_path, o)?;
+        }
         save_json(&spilled_marker, &bytes)?;
-    }
+        occupancy
+    };
     timer.lap("partition", &mut phases);
 
     // Global scalars, when the method needs them: a pre-pass over the tiles.
@@ -832,7 +855,7 @@ fn run_tiled(
         for t in 0..plan.tiles.len() {
             cancelled(opts)?;
             let partial = with_cancel(&opts.cancel, || {
-                tiling::globals_of_tile(dir.path(), &plan, t, &job.params)
+                tiling::globals_of_tile(dir.path(), &plan, occupancy.as_ref(), t, &job.params)
             });
             sum.merge(&partial.map_err(tiling_err)?);
             opts.progress.advance(t as u64 + 1);
@@ -887,7 +910,15 @@ fn run_tiled(
             let (path, plan) = (dir.path(), &plan);
             let reader = following.map(|n| s.spawn(move || tiling::load_tile(path, plan, n)));
             let o = with_cancel(&opts.cancel, || {
-                tiling::process_tile(path, plan, t, &job.params, &globals, pts)
+                tiling::process_tile(
+                    path,
+                    plan,
+                    occupancy.as_ref(),
+                    t,
+                    &job.params,
+                    &globals,
+                    pts,
+                )
             });
             let next = reader.map(|h| h.join().expect("the spill reader does not panic"));
             (o, next)

@@ -20,6 +20,7 @@
 //! With ties broken by global index, sums in a fixed order and Jacobi passes, the tiled output is
 //! bit-identical to the in-memory output for any tile size.
 
+pub mod occupancy;
 pub mod plan;
 pub mod spill;
 
@@ -32,6 +33,7 @@ use crate::denoise::cloud::{self, CloudRun, Globals, GlobalsPartial};
 use crate::denoise::{DenoiseError, Params, Stats};
 use crate::geometry::ExactSum;
 use crate::io::IoError;
+use occupancy::Occupancy;
 use plan::Plan;
 use spill::{TilePoint, TileResult, read_spill, write_results};
 
@@ -150,6 +152,7 @@ fn load(dir: &Path, plan: &Plan, t: usize, halo: f64) -> Result<Vec<TilePoint>, 
 fn with_exact_halo<T>(
     dir: &Path,
     plan: &Plan,
+    occupancy: Option<&Occupancy>,
     t: usize,
     hops: usize,
     mut preloaded: Option<Vec<TilePoint>>,
@@ -170,12 +173,24 @@ fn with_exact_halo<T>(
         };
         let positions: Vec<DVec3> = pts.iter().map(|p| p.p).collect();
         let ties: Vec<u64> = pts.iter().map(|p| p.index).collect();
+        // Balls crossing the region are complete when the cells they touch hold nothing more.
+        let loaded = std::sync::OnceLock::new();
+        let complete = |p: DVec3, r2: f64| {
+            occupancy.is_some_and(|o| {
+                o.complete(
+                    loaded.get_or_init(|| o.loaded(positions.iter().copied())),
+                    p,
+                    r2,
+                )
+            })
+        };
         let run = CloudRun {
             positions: &positions,
             ties: &ties,
             origin: plan.origin,
             region: Some(plan.region(t, halo)),
             isolation: plan.isolation,
+            complete: occupancy.map(|_| &complete as &(dyn Fn(DVec3, f64) -> bool + Sync)),
         };
         let owned = pts.iter().filter(|p| p.owned).count();
         if owned == 0 {
@@ -212,10 +227,11 @@ fn with_exact_halo<T>(
 pub fn globals_of_tile(
     dir: &Path,
     plan: &Plan,
+    occupancy: Option<&Occupancy>,
     t: usize,
     params: &Params,
 ) -> Result<GlobalsPartial, TilingError> {
-    let (sum, _, _, _) = with_exact_halo(dir, plan, t, 0, None, |pts, run| {
+    let (sum, _, _, _) = with_exact_halo(dir, plan, occupancy, t, 0, None, |pts, run| {
         if pts.is_empty() {
             return Ok((GlobalsPartial::default(), true));
         }
@@ -239,6 +255,7 @@ pub fn globals_of_tile(
 pub fn process_tile(
     dir: &Path,
     plan: &Plan,
+    occupancy: Option<&Occupancy>,
     t: usize,
     params: &Params,
     globals: &Globals,
@@ -246,7 +263,7 @@ pub fn process_tile(
 ) -> Result<TileOutcome, TilingError> {
     let hops = cloud::reach(params);
     let (result, pts, halo, growths) =
-        with_exact_halo(dir, plan, t, hops, preloaded, |pts, run| {
+        with_exact_halo(dir, plan, occupancy, t, hops, preloaded, |pts, run| {
             if pts.is_empty() {
                 return Ok((None, true));
             }

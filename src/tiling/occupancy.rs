@@ -1,0 +1,212 @@
+//! The occupancy grid: how many points each coarse cell of space holds, counted in the
+//! partition pass, so a tile can prove that a ball reaching past its region holds no point it
+//! has not loaded.
+//!
+//! A tile's result is exact when every k-NN ball it depends on is complete. Inside the region
+//! that is a box test; a ball that crosses the region's faces is still complete when every cell
+//! it touches holds exactly as many points overall as the tile has loaded from it:
+//!
+//! ```text
+//!   ┌───────┬───────┬───────┐     region face
+//!   │ 0     │ 0     │ 0     │     ┆
+//!   ├───────┼───────┼───────┤     ┆      ball of an isolated point p crossing the face:
+//!   │ 0     │ 3 = 3 │ 0     │←────┆───   complete, every touched cell's global count
+//!   ├───────┼───────┼───────┤     ┆      equals what the tile loaded from it
+//!   │ 0     │ 0     │ 0     │     ┆
+//!   └───────┴───────┴───────┘
+//! ```
+//!
+//! This is what keeps far outliers and sparse stragglers from growing halos: their balls sit in
+//! empty space. Cells start at the isolation radius and double while there are more than
+//! [`MAX_CELLS`], so the grid stays small for any input; coarser cells only make the test more
+//! conservative. Only the speed depends on the grid, never a result.
+
+use std::collections::HashMap;
+
+use glam::DVec3;
+
+/// Most cells kept (about 40 MB at the worst); beyond it the cells double in size.
+pub const MAX_CELLS: usize = 1 << 20;
+
+/// Most cells one ball test visits; a larger ball is reported as not proven complete.
+const MAX_VISITS: i64 = 512;
+
+/// Point counts per cell of a regular grid. A cell is `2^level` base cells along each axis, and a
+/// point's key is its base-cell key shifted right by `level`, so coarsening merges counts exactly
+/// and a point is always counted in the cell [`Occupancy::loaded`] puts it in.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Occupancy {
+    /// Base cell edge length.
+    base: f64,
+    /// Times the cells doubled.
+    level: u32,
+    /// Corner of cell (0, 0, 0).
+    origin: DVec3,
+    /// Points per non-empty cell.
+    #[serde(with = "cells")]
+    counts: HashMap<[i64; 3], u64>,
+}
+
+/// Counts of the points one tile loaded, per cell of an [`Occupancy`] grid.
+#[derive(Debug, Clone, Default)]
+pub struct Loaded(HashMap<[i64; 3], u64>);
+
+impl Occupancy {
+    /// An empty grid of cells of `cell` (positive and finite) with a corner at `origin`.
+    pub fn new(cell: f64, origin: DVec3) -> Occupancy {
+        Occupancy {
+            base: cell,
+            level: 0,
+            origin,
+            counts: HashMap::new(),
+        }
+    }
+
+    /// The cell edge length.
+    pub fn cell(&self) -> f64 {
+        self.base * f64::from(1u32 << self.level.min(31))
+    }
+
+    /// The cell of `p` (monotone in each coordinate).
+    fn key(&self, p: DVec3) -> [i64; 3] {
+        // Saturating float-to-int casts: positions are within ±1e12 and cells positive.
+        let c = ((p - self.origin) / self.base).floor();
+        [c.x as i64, c.y as i64, c.z as i64].map(|v| v >> self.level.min(63))
+    }
+
+    /// Counts `p` (a processed position).
+    pub fn add(&mut self, p: DVec3) {
+        *self.counts.entry(self.key(p)).or_insert(0) += 1;
+        while self.counts.len() > MAX_CELLS {
+            self.coarsen();
+        }
+    }
+
+    /// Doubles the cell size, merging counts exactly (a cell's parent is its key shifted right
+    /// by one, as [`Occupancy::key`] computes it).
+    fn coarsen(&mut self) {
+        self.level += 1;
+        let old = std::mem::take(&mut self.counts);
+        for (k, n) in old {
+            *self.counts.entry(k.map(|c| c >> 1)).or_insert(0) += n;
+        }
+    }
+
+    /// Non-empty cells.
+    pub fn len(&self) -> usize {
+        self.counts.len()
+    }
+
+    /// True when no point was counted.
+    pub fn is_empty(&self) -> bool {
+        self.counts.is_empty()
+    }
+
+    /// The per-cell counts of `points` (what a tile loaded).
+    pub fn loaded(&self, points: impl Iterator<Item = DVec3>) -> Loaded {
+        let mut m = HashMap::new();
+        for p in points {
+            *m.entry(self.key(p)).or_insert(0u64) += 1;
+        }
+        Loaded(m)
+    }
+
+    /// True when every point within √`r2` of `p` is among the loaded ones: every cell the ball's
+    /// bounding box touches holds no more points overall than were loaded from it.
+    pub fn complete(&self, loaded: &Loaded, p: DVec3, r2: f64) -> bool {
+        // Margins cover the rounding of the squared radius and of `p ± r`.
+        let r = r2.max(0.0).sqrt() * (1.0 + 1e-9) + (p.abs().max_element() + 1.0) * 1e-15;
+        if !r.is_finite() {
+            return false;
+        }
+        let lo = self.key(p - DVec3::splat(r));
+        let hi = self.key(p + DVec3::splat(r));
+        let span = |a: usize| hi[a].saturating_sub(lo[a]).saturating_add(1);
+        if span(0).saturating_mul(span(1)).saturating_mul(span(2)) > MAX_VISITS {
+            return false;
+        }
+        for x in lo[0]..=hi[0] {
+            for y in lo[1]..=hi[1] {
+                for z in lo[2]..=hi[2] {
+                    let k = [x, y, z];
+                    let all = self.counts.get(&k).copied().unwrap_or(0);
+                    if all > loaded.0.get(&k).copied().unwrap_or(0) {
+                        return false;
+                    }
+                }
+            }
+        }
+        true
+    }
+}
+
+/// Serialises the cells as a sorted list (JSON keys must be strings, and sorted output is
+/// reproducible).
+mod cells {
+    use std::collections::HashMap;
+
+    use serde::{Deserialize, Deserializer, Serialize, Serializer};
+
+    pub fn serialize<S: Serializer>(m: &HashMap<[i64; 3], u64>, s: S) -> Result<S::Ok, S::Error> {
+        let mut v: Vec<([i64; 3], u64)> = m.iter().map(|(k, n)| (*k, *n)).collect();
+        v.sort_unstable();
+        v.serialize(s)
+    }
+
+    pub fn deserialize<'de, D: Deserializer<'de>>(
+        d: D,
+    ) -> Result<HashMap<[i64; 3], u64>, D::Error> {
+        Ok(Vec::<([i64; 3], u64)>::deserialize(d)?
+            .into_iter()
+            .collect())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_ball_in_empty_space_is_complete_and_one_over_unloaded_points_is_not() {
+        let mut g = Occupancy::new(1.0, DVec3::ZERO);
+        let inside = [DVec3::new(0.5, 0.5, 0.5), DVec3::new(0.6, 0.5, 0.5)];
+        let outside = DVec3::new(5.5, 0.5, 0.5);
+        for p in inside.iter().chain([&outside]) {
+            g.add(*p);
+        }
+        let loaded = g.loaded(inside.iter().copied());
+        assert!(g.complete(&loaded, inside[0], 0.25));
+        // A ball reaching the cell of the point not loaded.
+        assert!(!g.complete(&loaded, inside[0], 25.0));
+        // Everything loaded: complete whatever the radius (within the visit bound).
+        let all = g.loaded(inside.iter().chain([&outside]).copied());
+        assert!(g.complete(&all, inside[0], 25.0));
+        assert!(!g.complete(&all, inside[0], 1e6));
+        assert!(!g.complete(&all, inside[0], f64::INFINITY));
+    }
+
+    #[test]
+    fn coarsening_keeps_the_total_and_bounds_the_cells() {
+        let mut g = Occupancy::new(1e-3, DVec3::ZERO);
+        let n = MAX_CELLS as u64 + 10;
+        for i in 0..n {
+            g.add(DVec3::new(i as f64 * 1e-3 + 5e-4, -0.25, 0.0));
+        }
+        assert!(g.len() <= MAX_CELLS);
+        assert!(g.cell() > 1e-3);
+        // Every point is found in the cell the merged counts put it in.
+        let all = g.loaded((0..n).map(|i| DVec3::new(i as f64 * 1e-3 + 5e-4, -0.25, 0.0)));
+        assert_eq!(all.0, g.counts);
+        assert_eq!(g.counts.values().sum::<u64>(), n);
+    }
+
+    #[test]
+    fn round_trips_through_json() {
+        let mut g = Occupancy::new(0.5, DVec3::new(-1.0, 2.0, 3.0));
+        for i in 0..100 {
+            g.add(DVec3::new(i as f64 * 0.1, 2.0, 3.0 - i as f64 * 0.3));
+        }
+        let s = serde_json::to_string(&g).unwrap();
+        assert_eq!(serde_json::from_str::<Occupancy>(&s).unwrap(), g);
+    }
+}
