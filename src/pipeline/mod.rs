@@ -838,6 +838,16 @@ fn run_tiled(
         save_json(&spilled_marker, &bytes)?;
         occupancy
     };
+    // A tile, its read-ahead successor's points, the grid, the sample and the I/O buffers share
+    // the budget: one tile may load as many points as 80 % of it holds at `per_point` bytes.
+    let budget = tiling::TileBudget {
+        occupancy: occupancy.as_ref(),
+        max_points: Some(opts.memory_budget / 5 * 4 / per_point.max(1)),
+    };
+    // Up front: every tile's first load fits, or the run says so before any work.
+    for t in 0..plan.tiles.len() {
+        budget.check(&plan, t, plan.halo).map_err(tiling_err)?;
+    }
     timer.lap("partition", &mut phases);
 
     // Global scalars, when the method needs them: a pre-pass over the tiles.
@@ -855,7 +865,7 @@ fn run_tiled(
         for t in 0..plan.tiles.len() {
             cancelled(opts)?;
             let partial = with_cancel(&opts.cancel, || {
-                tiling::globals_of_tile(dir.path(), &plan, occupancy.as_ref(), t, &job.params)
+                tiling::globals_of_tile(dir.path(), &plan, &budget, t, &job.params)
             });
             sum.merge(&partial.map_err(tiling_err)?);
             opts.progress.advance(t as u64 + 1);
@@ -910,15 +920,7 @@ fn run_tiled(
             let (path, plan) = (dir.path(), &plan);
             let reader = following.map(|n| s.spawn(move || tiling::load_tile(path, plan, n)));
             let o = with_cancel(&opts.cancel, || {
-                tiling::process_tile(
-                    path,
-                    plan,
-                    occupancy.as_ref(),
-                    t,
-                    &job.params,
-                    &globals,
-                    pts,
-                )
+                tiling::process_tile(path, plan, &budget, t, &job.params, &globals, pts)
             });
             let next = reader.map(|h| h.join().expect("the spill reader does not panic"));
             (o, next)

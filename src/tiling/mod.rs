@@ -76,6 +76,21 @@ pub enum TilingError {
         /// The last halo tried.
         halo: f64,
     },
+    /// Holding a tile exactly needs more points in memory than the budget allows.
+    #[error(
+        "tile {tile}: an exact result needs up to {points} points in memory (halo {halo:.4}), \
+         more than the memory budget allows ({max}); raise --memory-budget"
+    )]
+    Budget {
+        /// The tile.
+        tile: usize,
+        /// Points the tile would load (an upper bound from the occupancy grid).
+        points: u64,
+        /// Points the budget allows one tile.
+        max: u64,
+        /// The halo it would load them for.
+        halo: f64,
+    },
     /// The cancellation flag installed with [`crate::neighbours::with_cancel`] was set.
     #[error("cancelled")]
     Cancelled,
@@ -107,6 +122,39 @@ const MAX_HALO_FRACTION: f64 = 1.0;
 /// the diagonal, so 2 × the diagonal is reached in 11; this only bounds the loop if the plan's
 /// numbers are degenerate.
 const MAX_HALO_GROWTHS: u32 = 64;
+
+/// What a tile may rely on and spend beyond its plan: the occupancy grid of the partition pass
+/// (which proves balls complete and bounds what a halo loads) and the points one tile may hold.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct TileBudget<'a> {
+    /// The partition pass's grid, when there is one.
+    pub occupancy: Option<&'a Occupancy>,
+    /// Most points one tile may load; `None` for no limit.
+    pub max_points: Option<u64>,
+}
+
+impl TileBudget<'_> {
+    /// [`TilingError::Budget`] when loading tile `t` with `halo` may take more points than
+    /// allowed (the grid's upper bound).
+    ///
+    /// # Errors
+    /// As said.
+    pub fn check(&self, plan: &Plan, t: usize, halo: f64) -> Result<u64, TilingError> {
+        let (Some(o), Some(max)) = (self.occupancy, self.max_points) else {
+            return Ok(0);
+        };
+        let points = o.points_in(&plan.region(t, halo));
+        if points > max {
+            return Err(TilingError::Budget {
+                tile: t,
+                points,
+                max,
+                halo,
+            });
+        }
+        Ok(points)
+    }
+}
 
 /// Loads the points of tile `t` for the plan's halo: its spill file (owned points plus halo
 /// copies). Callers may run this ahead of [`process_tile`] to overlap reading with computing.
@@ -152,7 +200,7 @@ fn load(dir: &Path, plan: &Plan, t: usize, halo: f64) -> Result<Vec<TilePoint>, 
 fn with_exact_halo<T>(
     dir: &Path,
     plan: &Plan,
-    occupancy: Option<&Occupancy>,
+    budget: &TileBudget,
     t: usize,
     hops: usize,
     mut preloaded: Option<Vec<TilePoint>>,
@@ -169,8 +217,12 @@ fn with_exact_halo<T>(
         }
         let pts = match preloaded.take() {
             Some(p) => p,
-            None => load(dir, plan, t, halo)?,
+            None => {
+                budget.check(plan, t, halo)?;
+                load(dir, plan, t, halo)?
+            }
         };
+        let occupancy = budget.occupancy;
         let positions: Vec<DVec3> = pts.iter().map(|p| p.p).collect();
         let ties: Vec<u64> = pts.iter().map(|p| p.index).collect();
         // Balls crossing the region are complete when the cells they touch hold nothing more.
@@ -227,11 +279,11 @@ fn with_exact_halo<T>(
 pub fn globals_of_tile(
     dir: &Path,
     plan: &Plan,
-    occupancy: Option<&Occupancy>,
+    budget: &TileBudget,
     t: usize,
     params: &Params,
 ) -> Result<GlobalsPartial, TilingError> {
-    let (sum, _, _, _) = with_exact_halo(dir, plan, occupancy, t, 0, None, |pts, run| {
+    let (sum, _, _, _) = with_exact_halo(dir, plan, budget, t, 0, None, |pts, run| {
         if pts.is_empty() {
             return Ok((GlobalsPartial::default(), true));
         }
@@ -255,7 +307,7 @@ pub fn globals_of_tile(
 pub fn process_tile(
     dir: &Path,
     plan: &Plan,
-    occupancy: Option<&Occupancy>,
+    budget: &TileBudget,
     t: usize,
     params: &Params,
     globals: &Globals,
@@ -263,7 +315,7 @@ pub fn process_tile(
 ) -> Result<TileOutcome, TilingError> {
     let hops = cloud::reach(params);
     let (result, pts, halo, growths) =
-        with_exact_halo(dir, plan, occupancy, t, hops, preloaded, |pts, run| {
+        with_exact_halo(dir, plan, budget, t, hops, preloaded, |pts, run| {
             if pts.is_empty() {
                 return Ok((None, true));
             }

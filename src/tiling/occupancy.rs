@@ -111,6 +111,20 @@ impl Occupancy {
         Loaded(m)
     }
 
+    /// An upper bound on the points inside `region`: the counts of every cell it touches.
+    pub fn points_in(&self, region: &crate::points::Aabb) -> u64 {
+        let cell = self.cell();
+        // A cell touches the region unless it lies wholly beyond one of its faces; the margin
+        // keeps the bound an upper one under rounding.
+        let lo = (region.min - self.origin) / cell - DVec3::splat(1e-9);
+        let hi = (region.max - self.origin) / cell + DVec3::splat(1e-9);
+        self.counts
+            .iter()
+            .filter(|(k, _)| (0..3).all(|a| (k[a] as f64) + 1.0 >= lo[a] && (k[a] as f64) <= hi[a]))
+            .map(|(_, n)| n)
+            .sum()
+    }
+
     /// True when every point within √`r2` of `p` is among the loaded ones: every cell the ball's
     /// bounding box touches holds no more points overall than were loaded from it.
     pub fn complete(&self, loaded: &Loaded, p: DVec3, r2: f64) -> bool {
@@ -170,19 +184,56 @@ mod tests {
     fn a_ball_in_empty_space_is_complete_and_one_over_unloaded_points_is_not() {
         let mut g = Occupancy::new(1.0, DVec3::ZERO);
         let inside = [DVec3::new(0.5, 0.5, 0.5), DVec3::new(0.6, 0.5, 0.5)];
-        let outside = DVec3::new(5.5, 0.5, 0.5);
+        let outside = DVec3::new(3.2, 0.5, 0.5);
         for p in inside.iter().chain([&outside]) {
             g.add(*p);
         }
         let loaded = g.loaded(inside.iter().copied());
         assert!(g.complete(&loaded, inside[0], 0.25));
         // A ball reaching the cell of the point not loaded.
-        assert!(!g.complete(&loaded, inside[0], 25.0));
+        assert!(!g.complete(&loaded, inside[0], 9.0));
         // Everything loaded: complete whatever the radius (within the visit bound).
         let all = g.loaded(inside.iter().chain([&outside]).copied());
-        assert!(g.complete(&all, inside[0], 25.0));
+        assert!(g.complete(&all, inside[0], 9.0));
         assert!(!g.complete(&all, inside[0], 1e6));
         assert!(!g.complete(&all, inside[0], f64::INFINITY));
+    }
+
+    #[test]
+    fn points_in_bounds_the_count_from_above() {
+        let mut g = Occupancy::new(1.0, DVec3::ZERO);
+        let pts: Vec<DVec3> = (0..1000)
+            .map(|i| {
+                DVec3::new(
+                    (i % 10) as f64 + 0.5,
+                    (i / 10 % 10) as f64 + 0.5,
+                    (i / 100) as f64,
+                )
+            })
+            .collect();
+        for p in &pts {
+            g.add(*p);
+        }
+        for (lo, hi) in [(0.0, 10.0), (2.2, 3.7), (-5.0, -1.0), (4.0, 4.0)] {
+            let region = crate::points::Aabb {
+                min: DVec3::splat(lo),
+                max: DVec3::splat(hi),
+            };
+            let exact = pts
+                .iter()
+                .filter(|p| (0..3).all(|a| p[a] >= lo && p[a] <= hi))
+                .count() as u64;
+            let bound = g.points_in(&region);
+            assert!(bound >= exact, "{lo}..{hi}: {bound} < {exact}");
+            // At most one cell of slack on each side.
+            let cells = ((hi - lo).max(0.0) + 3.0).powi(3) as u64;
+            assert!(bound <= cells, "{lo}..{hi}: {bound}");
+        }
+        let all = crate::points::Aabb {
+            min: DVec3::splat(f64::NEG_INFINITY),
+            max: DVec3::splat(f64::INFINITY),
+        };
+        assert_eq!(g.points_in(&all), 1000);
     }
 
     #[test]

@@ -158,7 +158,11 @@ pub fn read_spill(
     }
     let mut r = BufReader::with_capacity(BUFFER, f);
     let mut rec = [0u8; SPILL_RECORD];
-    for _ in 0..len / SPILL_RECORD as u64 {
+    for n in 0..len / SPILL_RECORD as u64 {
+        // A grown halo reads many files: honour Ctrl-C every 2 MiB.
+        if n % (1 << 16) == 0 && crate::neighbours::cancel_requested() {
+            return Err(TilingError::Cancelled);
+        }
         r.read_exact(&mut rec).map_err(|e| err(&path, e))?;
         let raw = u64::from_le_bytes(rec[0..8].try_into().expect("8 bytes"));
         let f = |o: usize| f64::from_le_bytes(rec[o..o + 8].try_into().expect("8 bytes"));
