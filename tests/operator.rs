@@ -335,20 +335,27 @@ fn issue_3_isolated_point_does_not_jump_onto_a_distant_surface() {
     let out = denoise(&pts, None, &Params::default()).unwrap();
     assert_eq!(out.positions[100], DVec3::new(50.0, 50.0, 50.0));
     assert_eq!(out.stats.structure.sparse, 1);
-    // Without the guard the step bound refuses the jump.
+    assert_eq!(out.stats.isolated, 1);
+    // Without the guard, and with the paper's plain solve (which has no step bound), it is
+    // farther than the isolation radius from any 16 points (issue 16): it stays, counted.
+    for solve in [SolveKind::Damped, SolveKind::Plain] {
+        let unguarded = Params {
+            guard: false,
+            solve,
+            ..Params::default()
+        };
+        let out = denoise(&pts, None, &unguarded).unwrap();
+        assert_eq!(out.positions[100], DVec3::new(50.0, 50.0, 50.0));
+        assert_eq!((out.stats.isolated, out.stats.far), (1, 0));
+    }
+    // Nearer than the isolation radius, the step bound of the unguarded solve refuses the jump.
+    pts[100] = DVec3::new(4.5, 4.5, 20.0);
     let unguarded = Params {
         guard: false,
         ..Params::default()
     };
     let out = denoise(&pts, None, &unguarded).unwrap();
-    assert_eq!(out.positions[100], DVec3::new(50.0, 50.0, 50.0));
+    assert_eq!(out.stats.isolated, 0);
+    assert_eq!(out.positions[100], DVec3::new(4.5, 4.5, 20.0));
     assert_eq!(out.stats.far, 1);
-    // The paper's plain solve keeps its exact definition (no bound).
-    let plain = Params {
-        solve: SolveKind::Plain,
-        guard: false,
-        ..Params::default()
-    };
-    let out = denoise(&pts, None, &plain).unwrap();
-    assert_eq!(out.stats.far, 0);
 }

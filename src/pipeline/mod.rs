@@ -723,8 +723,12 @@ fn clear_checkpoints(dir: &Path) -> Result<(), PipelineError> {
 }
 
 /// Pass 2: every finite point to its owner's spill file, halo copies to its neighbours'.
+/// Occupancy cells per isolation radius: fine enough that a cell beside a dense region is often
+/// empty, coarse enough that a ball of the radius visits at most 10³ cells.
+const CELLS_PER_RADIUS: f64 = 4.0;
+
 /// Pass 2: writes every processed point to its owner's spill file and its halo copies to the
-/// others', and counts the points per cell of the occupancy grid (cells of the isolation radius).
+/// others', and counts the points per cell of the occupancy grid (a quarter of the isolation radius).
 fn partition(
     job: &Job,
     opts: &RunOptions,
@@ -734,7 +738,9 @@ fn partition(
     let tiling_err = |e| tiling_error(&job.input, e);
     let mut spill = SpillWriter::create(dir, plan.tiles.len()).map_err(tiling_err)?;
     let mut near = Vec::new();
-    let mut occupancy = plan.isolation.map(|r| Occupancy::new(r, plan.origin));
+    let mut occupancy = plan
+        .isolation
+        .map(|r| Occupancy::new(r / CELLS_PER_RADIUS, plan.origin));
     stream(job, opts, |b| {
         for (j, &p) in b.positions.iter().enumerate() {
             if !in_range(p) {
@@ -803,7 +809,18 @@ fn run_tiled(
     let target = opts
         .tile_points
         .unwrap_or_else(|| (opts.memory_budget * 2 / (5 * per_point)).max(10_000));
-    let plan = planner.finish(target, job.params.k(), cloud::reach(&job.params));
+    // One tile may run on as many points (owned and halo) as half the budget holds at
+    // `per_point` bytes: the measured peak is about twice the estimate (allocator and transient
+    // copies), and the rest holds the read-ahead tile, the occupancy grid, the sample and I/O
+    // buffers.
+    let allowance = opts.memory_budget / 5 * 4;
+    let max_points = opts.memory_budget / 2 / per_point.max(1);
+    let plan = planner.finish_within(
+        target,
+        max_points,
+        job.params.k(),
+        cloud::reach(&job.params),
+    );
     timer.lap("plan", &mut phases);
 
     // Pass 2: partition.
@@ -838,15 +855,20 @@ fn run_tiled(
         save_json(&spilled_marker, &bytes)?;
         occupancy
     };
-    // A tile, its read-ahead successor's points, the grid, the sample and the I/O buffers share
-    // the budget: one tile may load as many points as 80 % of it holds at `per_point` bytes.
+    // A halo load may read as many points as the allowance holds at 80 bytes (a read point and
+    // its position and index copies) before they are counted.
     let budget = tiling::TileBudget {
         occupancy: occupancy.as_ref(),
-        max_points: Some(opts.memory_budget / 5 * 4 / per_point.max(1)),
+        max_points: Some(max_points),
+        max_staged: Some(allowance / 80),
     };
-    // Up front: every tile's first load fits, or the run says so before any work.
+    // Up front: every tile's first load (its spill file, exactly) fits, or the run says so
+    // before any work.
     for t in 0..plan.tiles.len() {
-        budget.check(&plan, t, plan.halo).map_err(tiling_err)?;
+        let points = tiling::spill::spilled_points(dir.path(), t).map_err(tiling_err)?;
+        budget
+            .check_points(t, points, plan.halo)
+            .map_err(tiling_err)?;
     }
     timer.lap("partition", &mut phases);
 

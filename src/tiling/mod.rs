@@ -30,7 +30,7 @@ use glam::DVec3;
 use thiserror::Error;
 
 use crate::denoise::cloud::{self, CloudRun, Globals, GlobalsPartial};
-use crate::denoise::{DenoiseError, Params, Stats};
+use crate::denoise::{DenoiseError, Params, Stats, structure};
 use crate::geometry::ExactSum;
 use crate::io::IoError;
 use occupancy::Occupancy;
@@ -129,19 +129,22 @@ const MAX_HALO_GROWTHS: u32 = 64;
 pub struct TileBudget<'a> {
     /// The partition pass's grid, when there is one.
     pub occupancy: Option<&'a Occupancy>,
-    /// Most points one tile may load; `None` for no limit.
+    /// Most points one tile may run the operator on; `None` for no limit.
     pub max_points: Option<u64>,
+    /// Most points a halo load may read before they are counted (the grid's upper bound on a
+    /// region; each read point costs far less than one the operator runs on).
+    pub max_staged: Option<u64>,
 }
 
 impl TileBudget<'_> {
-    /// [`TilingError::Budget`] when loading tile `t` with `halo` may take more points than
-    /// allowed (the grid's upper bound).
+    /// [`TilingError::Budget`] when reading tile `t` with `halo` may take more points than
+    /// [`TileBudget::max_staged`] (the grid's upper bound on the region).
     ///
     /// # Errors
     /// As said.
-    pub fn check(&self, plan: &Plan, t: usize, halo: f64) -> Result<u64, TilingError> {
-        let (Some(o), Some(max)) = (self.occupancy, self.max_points) else {
-            return Ok(0);
+    pub fn check_load(&self, plan: &Plan, t: usize, halo: f64) -> Result<(), TilingError> {
+        let (Some(o), Some(max)) = (self.occupancy, self.max_staged) else {
+            return Ok(());
         };
         let points = o.points_in(&plan.region(t, halo));
         if points > max {
@@ -152,7 +155,47 @@ impl TileBudget<'_> {
                 halo,
             });
         }
-        Ok(points)
+        Ok(())
+    }
+
+    /// The halo to grow to from `from` toward `to`: `to` when the grid's bound on its load fits
+    /// [`TileBudget::max_points`], else the largest halo between them whose bound fits (found
+    /// by bisection), else a quarter more than `from` (its exact load is checked once read).
+    pub fn fitting_halo(&self, plan: &Plan, t: usize, from: f64, to: f64) -> f64 {
+        let (Some(o), Some(max)) = (self.occupancy, self.max_points) else {
+            return to;
+        };
+        let fits = |h: f64| o.points_in(&plan.region(t, h)) <= max;
+        if fits(to) {
+            return to;
+        }
+        let (mut lo, mut hi) = (from, to);
+        for _ in 0..24 {
+            let mid = 0.5 * (lo + hi);
+            if fits(mid) { lo = mid } else { hi = mid }
+        }
+        // The bound is coarse (whole cells); the exact count after loading decides.
+        if lo > from * 1.01 {
+            lo
+        } else {
+            (from * 1.25).min(to)
+        }
+    }
+
+    /// [`TilingError::Budget`] when tile `t` loaded more than [`TileBudget::max_points`].
+    ///
+    /// # Errors
+    /// As said.
+    pub fn check_points(&self, t: usize, points: u64, halo: f64) -> Result<(), TilingError> {
+        match self.max_points {
+            Some(max) if points > max => Err(TilingError::Budget {
+                tile: t,
+                points,
+                max,
+                halo,
+            }),
+            _ => Ok(()),
+        }
     }
 }
 
@@ -196,13 +239,14 @@ fn load(dir: &Path, plan: &Plan, t: usize, halo: f64) -> Result<Vec<TilePoint>, 
 
 /// Runs `f` on tile `t`'s points with the smallest halo (starting at the plan's, doubling) for
 /// which `f` reports every owned point exact. Results that depend on `hops` hops of capped lists
-/// are exact at [`plan::sufficient_halo`], so the halo never grows past it.
+/// are exact at [`plan::sufficient_halo`], so the halo grows past it only while fewer than
+/// `min_points` points (one list) are loaded. `f` sees at least `min_points` points, or none.
 fn with_exact_halo<T>(
     dir: &Path,
     plan: &Plan,
     budget: &TileBudget,
     t: usize,
-    hops: usize,
+    (hops, min_points): (usize, usize),
     mut preloaded: Option<Vec<TilePoint>>,
     mut f: impl FnMut(&[TilePoint], &CloudRun) -> Result<(T, bool), TilingError>,
 ) -> Result<(T, Vec<TilePoint>, f64, u32), TilingError> {
@@ -218,7 +262,7 @@ fn with_exact_halo<T>(
         let pts = match preloaded.take() {
             Some(p) => p,
             None => {
-                budget.check(plan, t, halo)?;
+                budget.check_load(plan, t, halo)?;
                 load(dir, plan, t, halo)?
             }
         };
@@ -256,16 +300,25 @@ fn with_exact_halo<T>(
             )
             .map(|(v, _)| (v, pts, halo, growths));
         }
-        let (value, exact) = f(&pts, &run)?;
-        if exact {
-            return Ok((value, pts, halo, growths));
+        let few = pts.len() < min_points;
+        if !few {
+            budget.check_points(t, pts.len() as u64, halo)?;
+            let (value, exact) = f(&pts, &run)?;
+            if exact {
+                return Ok((value, pts, halo, growths));
+            }
         }
         growths += 1;
-        if sufficient.is_some_and(|s| halo >= s) {
+        if few {
+            // Isolated points may have fewer than k points within reach; the cloud has more.
+            halo *= 2.0;
+        } else if sufficient.is_some_and(|s| halo >= s) {
             // Cannot happen: at the sufficient halo every list and its members are loaded.
             return Err(TilingError::HaloLimit { tile: t, halo });
+        } else {
+            let next = sufficient.map_or(halo * 2.0, |s| (halo * 2.0).min(s));
+            halo = budget.fitting_halo(plan, t, halo, next);
         }
-        halo = sufficient.map_or(halo * 2.0, |s| (halo * 2.0).min(s));
         if halo.is_nan() || halo > limit || growths > MAX_HALO_GROWTHS {
             return Err(TilingError::HaloLimit { tile: t, halo });
         }
@@ -283,18 +336,23 @@ pub fn globals_of_tile(
     t: usize,
     params: &Params,
 ) -> Result<GlobalsPartial, TilingError> {
-    let (sum, _, _, _) = with_exact_halo(dir, plan, budget, t, 0, None, |pts, run| {
-        if pts.is_empty() {
-            return Ok((GlobalsPartial::default(), true));
-        }
-        if pts.len() < crate::denoise::structure::NEAR {
-            return Ok((GlobalsPartial::default(), false));
-        }
-        let (sum, exact) = cloud::globals_partial(run, params, |i| pts[i].owned)
-            .map_err(|e| TilingError::Denoise { tile: t, error: e })?;
-        let ok = pts.iter().zip(&exact).all(|(p, e)| !p.owned || *e);
-        Ok((sum, ok))
-    })?;
+    let (sum, _, _, _) = with_exact_halo(
+        dir,
+        plan,
+        budget,
+        t,
+        (0, structure::NEAR),
+        None,
+        |pts, run| {
+            if pts.is_empty() {
+                return Ok((GlobalsPartial::default(), true));
+            }
+            let (sum, exact) = cloud::globals_partial(run, params, |i| pts[i].owned)
+                .map_err(|e| TilingError::Denoise { tile: t, error: e })?;
+            let ok = pts.iter().zip(&exact).all(|(p, e)| !p.owned || *e);
+            Ok((sum, ok))
+        },
+    )?;
     Ok(sum)
 }
 
@@ -314,20 +372,23 @@ pub fn process_tile(
     preloaded: Option<Vec<TilePoint>>,
 ) -> Result<TileOutcome, TilingError> {
     let hops = cloud::reach(params);
-    let (result, pts, halo, growths) =
-        with_exact_halo(dir, plan, budget, t, hops, preloaded, |pts, run| {
+    let (result, pts, halo, growths) = with_exact_halo(
+        dir,
+        plan,
+        budget,
+        t,
+        (hops, params.k()),
+        preloaded,
+        |pts, run| {
             if pts.is_empty() {
                 return Ok((None, true));
-            }
-            if pts.len() < params.k() {
-                // Too few points to form one neighbourhood: not exact yet, grow the halo.
-                return Ok((None, false));
             }
             let r = cloud::run(run, params, globals)
                 .map_err(|e| TilingError::Denoise { tile: t, error: e })?;
             let ok = pts.iter().zip(&r.exact).all(|(p, e)| !p.owned || *e);
             Ok((Some(r), ok))
-        })?;
+        },
+    )?;
     let mut outcome = TileOutcome {
         halo,
         halo_growths: growths,

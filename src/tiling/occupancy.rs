@@ -17,7 +17,7 @@
 //! ```
 //!
 //! This is what keeps far outliers and sparse stragglers from growing halos: their balls sit in
-//! empty space. Cells start at the isolation radius and double while there are more than
+//! empty space. Cells start at a quarter of the isolation radius and double while there are more than
 //! [`MAX_CELLS`], so the grid stays small for any input; coarser cells only make the test more
 //! conservative. Only the speed depends on the grid, never a result.
 
@@ -29,7 +29,7 @@ use glam::DVec3;
 pub const MAX_CELLS: usize = 1 << 20;
 
 /// Most cells one ball test visits; a larger ball is reported as not proven complete.
-const MAX_VISITS: i64 = 512;
+const MAX_VISITS: i64 = 1331;
 
 /// Point counts per cell of a regular grid. A cell is `2^level` base cells along each axis, and a
 /// point's key is its base-cell key shifted right by `level`, so coarsening merges counts exactly

@@ -208,6 +208,14 @@ impl Planner {
 
     /// Splits into tiles of about `target` points; `k` and `reach` size the initial halo.
     pub fn finish(self, target: u64, k: usize, reach: usize) -> Plan {
+        self.finish_within(target, u64::MAX, k, reach)
+    }
+
+    /// As [`Planner::finish`], with tiles made smaller (down to [`MIN_TARGET`] points) while the
+    /// sample predicts that one would load more than `max_load` points with its halo: small tiles
+    /// over dense clusters, or a halo wide against the tile, would otherwise exceed the memory
+    /// budget. The caller checks the exact loads after the partition.
+    pub fn finish_within(self, target: u64, max_load: u64, k: usize, reach: usize) -> Plan {
         let mut sample: Vec<(u64, DVec3)> = self
             .sample
             .into_iter()
@@ -234,33 +242,63 @@ impl Planner {
         } else {
             bounds.min
         };
-        let mut nodes = Vec::new();
-        let mut tiles = Vec::new();
         let pts: Vec<DVec3> = sample.iter().map(|s| s.1).collect();
-        let mut idx: Vec<usize> = (0..pts.len()).collect();
-        split(
-            &pts,
-            &mut idx,
-            bounds,
-            weight,
-            target.max(1) as f64,
-            &mut nodes,
-            &mut tiles,
-        );
         let halo = halo_estimate(&pts, origin, self.finite, k, reach, &bounds);
         // The in-memory path draws the same radius from the same sample when the capacity is
         // [`SAMPLE`], as the pipeline's is.
         let isolation = crate::denoise::isolation::radius(&pts, origin, self.finite, k);
-        Plan {
-            bounds,
-            origin,
-            points: self.points,
-            finite: self.finite,
-            nodes,
-            tiles,
-            halo,
-            isolation,
+        let mut target = target.max(1);
+        // Each round shrinks the target by at least 10 %: the loop ends.
+        loop {
+            let mut nodes = Vec::new();
+            let mut tiles = Vec::new();
+            let mut idx: Vec<usize> = (0..pts.len()).collect();
+            split(
+                &pts,
+                &mut idx,
+                bounds,
+                weight,
+                target as f64,
+                &mut nodes,
+                &mut tiles,
+            );
+            let plan = Plan {
+                bounds,
+                origin,
+                points: self.points,
+                finite: self.finite,
+                nodes,
+                tiles,
+                halo,
+                isolation,
+            };
+            let load = plan.largest_load(&pts, weight);
+            if load <= max_load as f64 || target <= MIN_TARGET {
+                return plan;
+            }
+            let shrunk = (target as f64 * (max_load as f64 / load) * 0.9) as u64;
+            target = shrunk.min(target * 9 / 10).max(MIN_TARGET);
         }
+    }
+}
+
+/// The smallest tile target [`Planner::finish_within`] shrinks to.
+pub const MIN_TARGET: u64 = 1000;
+
+impl Plan {
+    /// The most points one tile's first load (owned plus halo copies) holds, estimated from the
+    /// sample (`weight` points per sample point).
+    fn largest_load(&self, sample: &[DVec3], weight: f64) -> f64 {
+        let mut counts = vec![0u64; self.tiles.len()];
+        let mut near = Vec::new();
+        for &p in sample {
+            near.clear();
+            self.near(p, self.halo, &mut near);
+            for &t in &near {
+                counts[t] += 1;
+            }
+        }
+        counts.into_iter().max().unwrap_or(0) as f64 * weight
     }
 }
 

@@ -137,6 +137,16 @@ pub struct TilePoint {
     pub owned: bool,
 }
 
+/// Records in tile `t`'s spill file: exactly the points its first load holds.
+///
+/// # Errors
+/// The file's metadata cannot be read.
+pub fn spilled_points(dir: &Path, t: usize) -> Result<u64, TilingError> {
+    let path = spill_path(dir, t);
+    let len = std::fs::metadata(&path).map_err(|e| err(&path, e))?.len();
+    Ok(len / SPILL_RECORD as u64)
+}
+
 /// Reads tile `t`'s spill file; `keep` filters the records by (index, position, is_halo).
 ///
 /// # Errors
