@@ -105,15 +105,19 @@ pub enum NormalsArg {
 /// Flags of `qemd denoise`.
 #[derive(Debug, Args)]
 pub struct DenoiseArgs {
-    /// Input file (.ply, .obj, .off, .las, .laz, .pcd, .xyz, .txt, .pts, .bin).
+    /// Input file (.ply, .obj, .off, .las, .laz, .pcd, .xyz, .txt, .pts, .bin), or - for
+    /// standard input (spooled to --temp-dir; the format is told from the content unless
+    /// --input-format is given).
     pub input: PathBuf,
-    /// Output file; its extension picks the format unless --format is given.
+    /// Output file, or - for standard output; its extension picks the format unless --format is
+    /// given (standard output and other streams default to the input's format). Regular files
+    /// are replaced atomically; devices, FIFOs and standard output are written directly.
     #[arg(short, long)]
     pub output: PathBuf,
     /// Output format, overriding the extension.
-    #[arg(long, value_parser = parse_format)]
+    #[arg(long, visible_alias = "output-format", value_parser = parse_format)]
     pub format: Option<Format>,
-    /// Input format, overriding the extension.
+    /// Input format, overriding the extension and the content.
     #[arg(long, value_parser = parse_format)]
     pub input_format: Option<Format>,
     /// Denoising method.

@@ -101,6 +101,26 @@ pub enum PipelineError {
     },
 }
 
+impl PipelineError {
+    /// The same error naming the stream `input` where it named its spool.
+    fn with_input(self, input: &io::InputFile) -> PipelineError {
+        let (from, to) = (input.path(), input.shown());
+        let swap = |p: PathBuf| if p == from { to.to_path_buf() } else { p };
+        match self {
+            PipelineError::Io(e) => PipelineError::Io(input.explain(e)),
+            PipelineError::Denoise { path, error } => PipelineError::Denoise {
+                path: swap(path),
+                error,
+            },
+            PipelineError::Tiling { path, error } => PipelineError::Tiling {
+                path: swap(path),
+                error,
+            },
+            other => other,
+        }
+    }
+}
+
 /// What to do with statistical outliers: points whose mean distance to their k-NN list is above
 /// `mean + alpha·σ` of that statistic over the whole cloud.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize, Default)]
@@ -318,11 +338,36 @@ pub fn run(job: &Job, opts: &RunOptions) -> Result<Report, PipelineError> {
             detail: format!("must be finite and ≥ 0, got {}", job.outlier_alpha),
         }));
     }
+    if let Some(t) = &opts.temp_dir
+        && !t.is_dir()
+    {
+        return Err(PipelineError::TempDir {
+            path: t.clone(),
+            detail: "does not exist or is not a directory".into(),
+        });
+    }
     if same_file(&job.input, &job.output) {
         return Err(PipelineError::SameFile {
             path: job.output.clone(),
         });
     }
+    // A stream (standard input, a pipe, a FIFO) is read more than once below: spool it first.
+    let input = io::InputFile::open(&job.input, job.input_format, opts.temp_dir.as_deref())?;
+    if input.is_spooled() {
+        let spooled = Job {
+            input: input.path().to_path_buf(),
+            input_format: input.format(),
+            ..job.clone()
+        };
+        let mut report = run_file(&spooled, opts).map_err(|e| e.with_input(&input))?;
+        report.input = job.input.clone();
+        return Ok(report);
+    }
+    run_file(job, opts)
+}
+
+/// [`run`] on an input that is a file.
+fn run_file(job: &Job, opts: &RunOptions) -> Result<Report, PipelineError> {
     let wall = Instant::now();
     let cpu = ProcessTime::now();
     let source = io::open(&job.input, job.input_format)?;
@@ -453,9 +498,10 @@ impl Assembler {
     }
 }
 
-fn sink_options(job: &Job) -> SinkOptions {
+fn sink_options(job: &Job, opts: &RunOptions) -> SinkOptions {
     SinkOptions {
         noise_flag: job.outliers == OutlierMode::Classify,
+        temp_dir: opts.temp_dir.clone(),
     }
 }
 
@@ -574,7 +620,7 @@ fn run_points_in_memory(job: &Job, opts: &RunOptions) -> Result<Report, Pipeline
         job.output_format,
         &cloud.info,
         out.len() as u64,
-        &sink_options(job),
+        &sink_options(job, opts),
     )?;
     write_chunked(sink.as_mut(), &out)?;
     sink.finish(&cloud.extras)?;
@@ -931,7 +977,7 @@ fn run_tiled(
         job.output_format,
         info,
         count,
-        &sink_options(job),
+        &sink_options(job, opts),
     )?;
     let mut merge = ResultMerge::open(dir.path(), plan.tiles.len()).map_err(tiling_err)?;
     let mut next: Option<TileResult> = merge.next_result().map_err(tiling_err)?;
