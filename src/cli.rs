@@ -3,12 +3,13 @@
 //! Parsing (clap) and validation are kept apart, as in ripgrep: the raw flags here become a
 //! validated [`Params`] through [`DenoiseArgs::params`], and `main` only dispatches.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use clap::{Args, Parser, Subcommand, ValueEnum};
 
 use crate::denoise::{Method, NormalWeighting, Params, Planes, SolveKind};
 use crate::io::Format;
+use crate::io::raw::BinLayout;
 
 /// Feature-preserving denoising of meshes and point clouds with the Quadric Error Metric.
 #[derive(Debug, Parser)]
@@ -115,11 +116,16 @@ pub struct DenoiseArgs {
     #[arg(short, long)]
     pub output: PathBuf,
     /// Output format, overriding the extension.
-    #[arg(long, visible_alias = "output-format", value_parser = parse_format)]
+    #[arg(long, visible_alias = "output-format", ignore_case = true, value_parser = format_parser())]
     pub format: Option<Format>,
     /// Input format, overriding the extension and the content.
-    #[arg(long, value_parser = parse_format)]
+    #[arg(long, ignore_case = true, value_parser = format_parser())]
     pub input_format: Option<Format>,
+    /// Layout of raw little-endian float32 .bin records, input and output: comma-separated x, y,
+    /// z, intensity (i), ring, time (t) and _ (unnamed), or a count N (x, y, z and N − 3
+    /// unnamed). Default: KITTI x,y,z,i for *.bin, nuScenes x,y,z,i,ring for *.pcd.bin.
+    #[arg(long, value_name = "FIELDS|N", value_parser = BinLayout::parse)]
+    pub bin_fields: Option<BinLayout>,
     /// Denoising method.
     #[arg(long, value_enum, default_value_t = MethodArg::Qem)]
     pub method: MethodArg,
@@ -224,7 +230,39 @@ pub fn parse_format(s: &str) -> Result<Format, String> {
     Format::from_name(s).ok_or_else(|| format!("unknown format `{s}`"))
 }
 
+/// The `--format` parser: lists [`Format::NAMES`] in the help and maps a name to its format.
+fn format_parser() -> impl clap::builder::TypedValueParser<Value = Format> {
+    use clap::builder::TypedValueParser as _;
+    clap::builder::PossibleValuesParser::new(Format::NAMES)
+        .map(|s| Format::from_name(&s).expect("every listed name parses"))
+}
+
+/// The format of one side of a run given `--bin-fields`: a raw format (given, told by the
+/// extension, or untold, as for standard input) takes the layout; any other stays.
+fn with_layout(given: Option<Format>, path: &Path, layout: Option<BinLayout>) -> Option<Format> {
+    let Some(layout) = layout else {
+        return given;
+    };
+    let raw = match given {
+        Some(f) => f.bin_layout().is_some(),
+        None => Format::from_path(path).map_or(true, |f| f.bin_layout().is_some()),
+    };
+    if raw {
+        Some(Format::Bin(layout))
+    } else {
+        given
+    }
+}
+
 impl DenoiseArgs {
+    /// The input and output formats these flags select (`None`: from the extension or content).
+    pub fn formats(&self) -> (Option<Format>, Option<Format>) {
+        (
+            with_layout(self.input_format, &self.input, self.bin_fields),
+            with_layout(self.format, &self.output, self.bin_fields),
+        )
+    }
+
     /// The parameters these flags select, on top of the defaults (or of the paper's operator
     /// with `--paper`); not yet validated.
     pub fn params(&self) -> Params {

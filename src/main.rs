@@ -134,11 +134,12 @@ fn init_threads(threads: Option<usize>) -> Result<()> {
 fn denoise(a: DenoiseArgs) -> Result<()> {
     init_threads(a.threads)?;
     let config = Config::load(a.config.as_deref())?;
+    let (input_format, output_format) = a.formats();
     let job = Job {
         input: a.input.clone(),
         output: a.output.clone(),
-        input_format: a.input_format,
-        output_format: a.format,
+        input_format,
+        output_format,
         params: a.params(),
         outliers: match a.outliers {
             OutliersArg::Off => OutlierMode::Off,

@@ -52,13 +52,13 @@
 //! One backend per format lives in its own module; this module only dispatches.
 
 pub mod input;
-pub mod kitti;
 pub mod las;
 pub mod obj;
 pub mod off;
 pub mod output;
 pub mod pcd;
 pub mod ply;
+pub mod raw;
 pub mod sniff;
 pub mod text;
 
@@ -215,13 +215,17 @@ pub enum Format {
     Pts,
     /// KITTI Velodyne scan: little-endian `f32` x, y, z, intensity records (`.bin`).
     Kitti,
+    /// nuScenes LiDAR sweep: little-endian `f32` x, y, z, intensity, ring records (`.pcd.bin`).
+    Nuscenes,
+    /// Raw little-endian `f32` records of another layout (`--bin-fields`).
+    Bin(raw::BinLayout),
     /// Point Cloud Library PCD (ascii, binary, binary_compressed).
     Pcd,
     /// ASPRS LAS (`.las`), LAZ (`.laz`, compressed) and COPC (`.copc.laz`, read as LAZ).
     Las,
 }
 
-const KNOWN: &str = ".ply, .obj, .off, .xyz, .txt, .pts, .bin, .pcd, .las, .laz";
+const KNOWN: &str = ".ply, .obj, .off, .xyz, .txt, .pts, .bin, .pcd.bin, .pcd, .las, .laz";
 
 impl Format {
     /// Tells the format from a file extension (case-insensitive).
@@ -229,6 +233,13 @@ impl Format {
     /// # Errors
     /// [`IoError::UnknownFormat`] for an unknown or missing extension.
     pub fn from_path(path: &Path) -> Result<Format, IoError> {
+        let name = path
+            .file_name()
+            .map(|n| n.to_string_lossy().to_ascii_lowercase())
+            .unwrap_or_default();
+        if name.ends_with(".pcd.bin") {
+            return Ok(Format::Nuscenes);
+        }
         let ext = path
             .extension()
             .and_then(|e| e.to_str())
@@ -242,7 +253,7 @@ impl Format {
     }
 
     /// Parses a format name or extension (`ply`, `obj`, `off`, `xyz`, `txt`, `pts`, `bin`,
-    /// `kitti`, `pcd`, `las`, `laz`).
+    /// `kitti`, `nuscenes`, `pcd`, `las`, `laz`; see [`Format::NAMES`]).
     pub fn from_name(name: &str) -> Option<Format> {
         match name.to_ascii_lowercase().as_str() {
             "ply" => Some(Format::Ply),
@@ -251,6 +262,7 @@ impl Format {
             "xyz" | "txt" => Some(Format::Xyz),
             "pts" => Some(Format::Pts),
             "bin" | "kitti" => Some(Format::Kitti),
+            "nuscenes" | "pcd.bin" => Some(Format::Nuscenes),
             "pcd" => Some(Format::Pcd),
             "las" | "laz" => Some(Format::Las),
             _ => None,
@@ -266,8 +278,25 @@ impl Format {
             Format::Xyz => "xyz",
             Format::Pts => "pts",
             Format::Kitti => "bin",
+            Format::Nuscenes => "pcd.bin",
+            Format::Bin(_) => "bin",
             Format::Pcd => "pcd",
             Format::Las => "las",
+        }
+    }
+
+    /// The names [`Format::from_name`] accepts, for help texts.
+    pub const NAMES: &'static [&'static str] = &[
+        "ply", "obj", "off", "xyz", "txt", "pts", "pcd", "las", "laz", "kitti", "bin", "nuscenes",
+    ];
+
+    /// The record layout of a raw `f32` format (KITTI, nuScenes, [`Format::Bin`]).
+    pub fn bin_layout(self) -> Option<raw::BinLayout> {
+        match self {
+            Format::Kitti => Some(raw::BinLayout::KITTI),
+            Format::Nuscenes => Some(raw::BinLayout::NUSCENES),
+            Format::Bin(l) => Some(l),
+            _ => None,
         }
     }
 }
@@ -430,7 +459,9 @@ pub fn open(path: &Path, format: Option<Format>) -> Result<Box<dyn Source>, IoEr
         Format::Off => Box::new(off::OffSource::open(path)?),
         Format::Xyz => Box::new(text::TextSource::open(path, text::TextFlavor::Xyz)?),
         Format::Pts => Box::new(text::TextSource::open(path, text::TextFlavor::Pts)?),
-        Format::Kitti => Box::new(kitti::KittiSource::open(path)?),
+        Format::Kitti | Format::Nuscenes | Format::Bin(_) => {
+            Box::new(raw::RawSource::open_as(path, format)?)
+        }
         Format::Pcd => Box::new(pcd::PcdSource::open(path)?),
         Format::Las => Box::new(las::LasSource::open(path)?),
     })
@@ -531,6 +562,10 @@ pub fn create_with(
                 "a KITTI .bin record has no room for a noise flag; use --outliers remove or \
                  another output format",
             ),
+            Format::Nuscenes | Format::Bin(_) => Some(
+                "a raw .bin record has no room for a noise flag; use --outliers remove or \
+                 another output format",
+            ),
             Format::Obj | Format::Off => Some("outlier flags apply to point clouds"),
         };
         if let Some(detail) = refuse {
@@ -558,7 +593,9 @@ pub fn create_with(
             count,
             options,
         )?),
-        Format::Kitti => Box::new(kitti::KittiSink::create(path, like, count)?),
+        Format::Kitti | Format::Nuscenes | Format::Bin(_) => {
+            Box::new(raw::RawSink::create_as(path, format, like, count)?)
+        }
         Format::Pcd => Box::new(pcd::PcdSink::create(path, like, count, options)?),
         Format::Las => Box::new(las::LasSink::create(path, like, count, options)?),
     })
