@@ -103,6 +103,15 @@ pub enum NormalsArg {
     Mean,
 }
 
+impl From<NormalWeighting> for NormalsArg {
+    fn from(n: NormalWeighting) -> NormalsArg {
+        match n {
+            NormalWeighting::Area => NormalsArg::Area,
+            NormalWeighting::Mean => NormalsArg::Mean,
+        }
+    }
+}
+
 /// Flags of `qemd denoise`.
 #[derive(Debug, Args)]
 pub struct DenoiseArgs {
@@ -143,9 +152,9 @@ pub struct DenoiseArgs {
     /// QEM updates per cycle. Default 5 on meshes, 2 on clouds.
     #[arg(long)]
     pub updates: Option<usize>,
-    /// Relative step penalty of the damped solve (default 0.5).
-    #[arg(long)]
-    pub mu: Option<f64>,
+    /// Relative step penalty of the damped solve.
+    #[arg(long, default_value_t = Params::default().mu)]
+    pub mu: f64,
     /// Lower bound of the normal filter's range width (default 0.35 meshes, 0.2 clouds).
     #[arg(long)]
     pub sigma_r: Option<f64>,
@@ -161,25 +170,25 @@ pub struct DenoiseArgs {
     /// beyond the operator's own bound of 3 × the local noise.
     #[arg(long, value_name = "DISTANCE")]
     pub max_move: Option<f64>,
-    /// k-ring size of tangent planes in mesh mode (the vertex itself included). Default 2.
-    #[arg(long)]
-    pub rings: Option<usize>,
+    /// k-ring size of tangent planes in mesh mode (the vertex itself included).
+    #[arg(long, default_value_t = Params::default().rings)]
+    pub rings: usize,
     /// Neighbourhood size in point mode (the point itself included); forces point mode. Default
     /// 16 on point clouds; meshes run on k-rings unless it is given.
     #[arg(long)]
     pub knn: Option<usize>,
     /// Mesh vertex normals.
-    #[arg(long, value_enum)]
-    pub normals: Option<NormalsArg>,
+    #[arg(long, value_enum, default_value_t = NormalsArg::from(Params::default().normals))]
+    pub normals: NormalsArg,
     /// How the quadric minimiser is found.
     #[arg(long, value_enum)]
     pub solve: Option<SolveArg>,
-    /// Relative eigenvalue cut-off of the robust solve (default 0.01).
-    #[arg(long)]
-    pub eps: Option<f64>,
-    /// Step penalty of the regularised solve (default 0.1).
-    #[arg(long)]
-    pub lambda: Option<f64>,
+    /// Relative eigenvalue cut-off of the robust solve.
+    #[arg(long, default_value_t = Params::default().eps)]
+    pub eps: f64,
+    /// Step penalty of the regularised solve.
+    #[arg(long, default_value_t = Params::default().lambda)]
+    pub lambda: f64,
     /// Cycles (QEM: normal filter then updates; default 0, which chooses from the data on meshes
     /// and is 1 on clouds) or passes (bilateral, default 3).
     #[arg(long)]
@@ -194,13 +203,17 @@ pub struct DenoiseArgs {
     /// Outlier threshold: mean k-NN distance above mean + ALPHA·σ (default from config: 2).
     #[arg(long)]
     pub outlier_alpha: Option<f64>,
-    /// Memory budget; clouds whose working set is larger run in tiles (e.g. "1 GiB").
+    /// Memory budget; clouds whose working set is larger run in tiles (e.g. "4 GiB"). Default:
+    /// `memory_budget` of the configuration, 1 GiB unless set there or in QEMD_MEMORY_BUDGET.
     #[arg(long)]
     pub memory_budget: Option<bytesize::ByteSize>,
-    /// Directory for spill files (default: the system temporary directory).
+    /// Directory for spill files and the spool of standard input; must exist (default:
+    /// `temp_dir` of the configuration, else the system temporary directory). A tiled run needs
+    /// about 88 bytes per point free there (checked before it starts).
     #[arg(long)]
     pub temp_dir: Option<PathBuf>,
-    /// Force tiling with about this many points per tile.
+    /// Force tiling with about this many points per tile (default: tiles only for clouds over
+    /// the memory budget, sized to it).
     #[arg(long)]
     pub tile_points: Option<u64>,
     /// Configuration file (overrides config/default.toml; QEMD_* variables override it).
@@ -279,15 +292,11 @@ impl DenoiseArgs {
             knn: self.knn,
             ..base
         };
-        if let Some(r) = self.rings {
-            p.rings = r;
-        }
-        if let Some(n) = self.normals {
-            p.normals = match n {
-                NormalsArg::Area => NormalWeighting::Area,
-                NormalsArg::Mean => NormalWeighting::Mean,
-            };
-        }
+        p.rings = self.rings;
+        p.normals = match self.normals {
+            NormalsArg::Area => NormalWeighting::Area,
+            NormalsArg::Mean => NormalWeighting::Mean,
+        };
         if let Some(pl) = self.planes {
             p.planes = match pl {
                 PlanesArg::Face => Planes::Face,
@@ -308,15 +317,9 @@ impl DenoiseArgs {
         if self.updates.is_some() {
             p.updates = self.updates;
         }
-        if let Some(e) = self.eps {
-            p.eps = e;
-        }
-        if let Some(l) = self.lambda {
-            p.lambda = l;
-        }
-        if let Some(m) = self.mu {
-            p.mu = m;
-        }
+        p.eps = self.eps;
+        p.lambda = self.lambda;
+        p.mu = self.mu;
         if self.sigma_r.is_some() {
             p.sigma_r = self.sigma_r;
         }

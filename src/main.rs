@@ -274,10 +274,15 @@ fn noise(a: NoiseArgs) -> Result<()> {
     cloud.positions = noisy.positions;
     cloud.write(&a.output, None)?;
     eprintln!(
-        "qemd: {} points displaced with σ = {:.6e} ({} × L = {:.6e})",
-        noisy.displaced, noisy.sigma, a.level, noisy.l
+        "qemd: {}",
+        noise_summary(noisy.displaced, a.level, noisy.sigma, noisy.l)
     );
     Ok(())
+}
+
+/// The line `qemd noise` prints: σ is `level × L`, and L is printed on its own.
+fn noise_summary(displaced: usize, level: f64, sigma: f64, l: f64) -> String {
+    format!("{displaced} points displaced with σ = {level} × L = {sigma:.6e} (L = {l:.6e})")
 }
 
 fn harm(a: HarmArgs) -> Result<()> {

@@ -54,6 +54,11 @@ impl TableMethod {
         )
     }
 
+    /// qemd's default operator ([`Params::default`]): what `qemd denoise` runs without flags.
+    pub fn default_operator() -> TableMethod {
+        TableMethod::new("default", Params::default())
+    }
+
     /// The paper's comparator: bilateral filtering, 3 iterations.
     pub fn paper_bilateral() -> TableMethod {
         TableMethod::new(
@@ -81,13 +86,18 @@ pub struct TableSpec {
 }
 
 impl Default for TableSpec {
-    /// The paper's protocol: iso noise at 20, 40 and 80 % of L, seed 0, QEM and bilateral.
+    /// The paper's protocol: iso noise at 20, 40 and 80 % of L, seed 0; the paper's QEM, its
+    /// bilateral comparator, and qemd's default operator.
     fn default() -> Self {
         TableSpec {
             levels: vec![0.2, 0.4, 0.8],
             seeds: vec![0],
             model: NoiseModel::Iso,
-            methods: vec![TableMethod::paper_qem(), TableMethod::paper_bilateral()],
+            methods: vec![
+                TableMethod::paper_qem(),
+                TableMethod::paper_bilateral(),
+                TableMethod::default_operator(),
+            ],
         }
     }
 }

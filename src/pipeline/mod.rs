@@ -692,13 +692,52 @@ impl Scratch {
     }
 }
 
-/// The scratch directory, checked to exist, be writable and have room for `need` bytes.
-fn scratch(opts: &RunOptions, need: u64) -> Result<Scratch, PipelineError> {
-    let base = opts
-        .work_dir
+/// Disk bytes per point a tiled run needs in its scratch directory: one spill record per point
+/// plus halo copies (counted as half as many again) and one result record.
+pub const TILED_DISK_PER_POINT: u64 =
+    (tiling::spill::SPILL_RECORD as u64 * 3).div_ceil(2) + tiling::spill::RESULT_RECORD as u64;
+
+/// Where the tiled path's scratch directory goes.
+fn scratch_base(opts: &RunOptions) -> PathBuf {
+    opts.work_dir
         .clone()
         .or_else(|| opts.temp_dir.clone())
-        .unwrap_or_else(std::env::temp_dir);
+        .unwrap_or_else(std::env::temp_dir)
+}
+
+/// Refuses a tiled run of `points` points before any work when the scratch file system has
+/// clearly too little room ([`TILED_DISK_PER_POINT`] per point).
+fn check_disk(opts: &RunOptions, points: u64) -> Result<(), PipelineError> {
+    let mut base = scratch_base(opts);
+    // A job directory may not exist yet: measure the nearest existing ancestor.
+    while !base.exists() {
+        match base.parent() {
+            Some(p) if !p.as_os_str().is_empty() => base = p.to_path_buf(),
+            _ => return Ok(()),
+        }
+    }
+    let need = points.saturating_mul(TILED_DISK_PER_POINT);
+    let free = fs4::available_space(&base).map_err(|e| PipelineError::TempDir {
+        path: base.clone(),
+        detail: e.to_string(),
+    })?;
+    if free < need {
+        return Err(PipelineError::TempDir {
+            path: base,
+            detail: format!(
+                "{:.2} GiB free, a tiled run of {points} points needs about {:.2} GiB \
+                 ({TILED_DISK_PER_POINT} bytes per point); free space or give --temp-dir",
+                free as f64 / (1u64 << 30) as f64,
+                need as f64 / (1u64 << 30) as f64
+            ),
+        });
+    }
+    Ok(())
+}
+
+/// The scratch directory, checked to exist, be writable and have room for `need` bytes.
+fn scratch(opts: &RunOptions, need: u64) -> Result<Scratch, PipelineError> {
+    let base = scratch_base(opts);
     let bad = |detail: String| PipelineError::TempDir {
         path: base.clone(),
         detail,
@@ -798,6 +837,10 @@ fn run_tiled(
     let mut phases = Stats::default();
     let mut timer = Timer::start();
 
+    // The disk the run needs, from the header's count, before the first pass.
+    if let Some(n) = info.len {
+        check_disk(opts, n)?;
+    }
     // Pass 1: plan.
     opts.progress.phase("plan", info.len.unwrap_or(0));
     let mut planner = Planner::new(SAMPLE);
@@ -838,8 +881,7 @@ fn run_tiled(
     timer.lap("plan", &mut phases);
 
     // Pass 2: partition.
-    let need = plan.finite * (tiling::spill::SPILL_RECORD as u64 * 3 / 2)
-        + plan.finite * tiling::spill::RESULT_RECORD as u64;
+    let need = plan.finite * TILED_DISK_PER_POINT;
     let dir = scratch(opts, need)?;
     // A persistent directory holding the same plan and a finished partition is reused: only
     // tiles without a checkpoint are processed again.
@@ -1023,4 +1065,29 @@ fn run_tiled(
     }));
     r.phases = all;
     Ok(r)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn issue12_tiled_disk_is_checked_up_front() {
+        let dir = tempfile::tempdir().unwrap();
+        let opts = RunOptions {
+            temp_dir: Some(dir.path().to_path_buf()),
+            ..RunOptions::default()
+        };
+        assert_eq!(TILED_DISK_PER_POINT, 88);
+        check_disk(&opts, 1000).unwrap();
+        // 10^15 points need 88 PB: clearly more than any test machine has.
+        let e = check_disk(&opts, 1_000_000_000_000_000)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains(&dir.path().display().to_string()) && e.contains("needs about"),
+            "{e}"
+        );
+        assert_eq!(e.lines().count(), 1);
+    }
 }
