@@ -446,6 +446,32 @@ pub struct RenderArgs {
     /// Image size in pixels, WIDTHxHEIGHT.
     #[arg(long, default_value = "800x800")]
     pub size: String,
+    /// The up axis (default: z for LAS, PCD, KITTI and nuScenes, y otherwise).
+    #[arg(long, value_enum)]
+    pub up: Option<UpArg>,
+    /// Colour points by height, intensity or class (default: one colour, shaded by normal).
+    #[arg(long, visible_alias = "color", value_enum)]
+    pub colour: Option<ColourArg>,
+}
+
+/// `qemd render --up`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum UpArg {
+    /// +y up.
+    Y,
+    /// +z up (`--view top` looks down).
+    Z,
+}
+
+/// `qemd render --colour`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum ColourArg {
+    /// Height along the up axis.
+    Height,
+    /// The `intensity` (or `reflectance`) field, 1st to 99th percentile.
+    Intensity,
+    /// The LAS classification, or a `class`/`label` field (ASPRS colours).
+    Class,
 }
 
 /// Flags of `qemd demo`.

@@ -404,11 +404,63 @@ fn render_options(view: &str, size: &str) -> Result<RenderOptions> {
 }
 
 fn render_cmd(a: RenderArgs) -> Result<()> {
-    let options = render_options(&a.view, &a.size)?;
+    use qem_denoise::cli::{ColourArg, UpArg};
+    use qem_denoise::eval::render::{ColourBy, Up, render_with};
+    let mut options = render_options(&a.view, &a.size)?;
     let cloud = Cloud::read(&a.input, None)?;
-    let image = render(&cloud.positions, cloud.faces(), &options)?;
+    options.up = match a.up {
+        Some(UpArg::Y) => Up::Y,
+        Some(UpArg::Z) => Up::Z,
+        None => Up::of_format(cloud.info.format),
+    };
+    options.colour_by = a.colour.map(|c| match c {
+        ColourArg::Height => ColourBy::Height,
+        ColourArg::Intensity => ColourBy::Intensity,
+        ColourArg::Class => ColourBy::Class,
+    });
+    let values =
+        render_values(&cloud, options.colour_by).with_context(|| a.input.display().to_string())?;
+    let image = render_with(&cloud.positions, cloud.faces(), values.as_deref(), &options)
+        .with_context(|| a.input.display().to_string())?;
     image.save(&a.output)?;
     Ok(())
+}
+
+/// The per-point values `--colour intensity|class` reads from the file's records.
+fn render_values(
+    cloud: &Cloud,
+    by: Option<qem_denoise::eval::render::ColourBy>,
+) -> Result<Option<Vec<f64>>> {
+    use qem_denoise::eval::render::ColourBy;
+    use qem_denoise::eval::scans::{ClassSource, classes_of};
+    let schema = &cloud.info.schema;
+    let rl = schema.record_len.max(1);
+    match by {
+        Some(ColourBy::Intensity) => {
+            let field = ["intensity", "reflectance", "scalar_intensity", "i"]
+                .iter()
+                .find_map(|n| schema.field_index(n));
+            Ok(field.map(|i| {
+                cloud
+                    .records
+                    .chunks_exact(rl)
+                    .map(|r| schema.get_f64(r, i))
+                    .collect()
+            }))
+        }
+        Some(ColourBy::Class) => {
+            let has_field = ["classification", "class", "label"]
+                .iter()
+                .any(|n| schema.field_index(n).is_some());
+            if !has_field {
+                return Ok(None);
+            }
+            let c = classes_of(cloud)?;
+            Ok((c.source != ClassSource::Structure)
+                .then(|| c.codes.iter().map(|&v| f64::from(v)).collect()))
+        }
+        _ => Ok(None),
+    }
 }
 
 fn demo(a: DemoArgs) -> Result<()> {

@@ -139,3 +139,72 @@ fn issue12_noise_prints_level_times_l() {
         "σ {sigma} vs 0.4 × L, L = {l}"
     );
 }
+
+#[test]
+fn issue12_render_up_and_colour_flags() {
+    use glam::DVec3;
+    use qem_denoise::io::Cloud;
+    use qem_denoise::points::ScalarType;
+    let dir = tempfile::tempdir().unwrap();
+    let pts: Vec<DVec3> = (0..900)
+        .map(|i| DVec3::new((i % 30) as f64, (i / 30) as f64, 0.1 * (i % 7) as f64))
+        .collect();
+    let las = dir.path().join("ground.las");
+    let ply = dir.path().join("ground.ply");
+    let cloud = Cloud::generated(pts, None, ScalarType::F64);
+    cloud.write(&las, None).unwrap();
+    cloud.write(&ply, None).unwrap();
+    for colour in ["height", "intensity", "class"] {
+        let png = dir.path().join(format!("{colour}.png"));
+        ok(&[
+            "render",
+            s(&las),
+            "-o",
+            s(&png),
+            "--view",
+            "top",
+            "--colour",
+            colour,
+            "--size",
+            "64x64",
+        ]);
+        assert_eq!(&std::fs::read(&png).unwrap()[1..4], b"PNG");
+    }
+    ok(&[
+        "render",
+        s(&ply),
+        "-o",
+        s(&dir.path().join("up.png")),
+        "--up",
+        "z",
+        "--size",
+        "64x64",
+    ]);
+    let out = dir.path().join("none.png");
+    let o = qemd(&["render", s(&ply), "-o", s(&out), "--colour", "intensity"]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert_eq!(err.trim_end().lines().count(), 1, "{err}");
+    assert!(err.contains(s(&ply)) && err.contains("intensity"), "{err}");
+    assert!(!out.exists());
+}
+
+#[test]
+#[ignore = "needs ../shared"]
+fn issue12_render_shared_las_by_class_from_the_top() {
+    let dir = tempfile::tempdir().unwrap();
+    let png = dir.path().join("top.png");
+    ok(&[
+        "render",
+        "../shared/data/lidar/sample_c.las",
+        "-o",
+        s(&png),
+        "--view",
+        "top",
+        "--colour",
+        "class",
+        "--size",
+        "200x200",
+    ]);
+    assert_eq!(&std::fs::read(&png).unwrap()[1..4], b"PNG");
+}
