@@ -196,6 +196,14 @@ fn denoise(a: DenoiseArgs) -> Result<()> {
             report.cpu_s,
             report.peak_rss_bytes as f64 / (1024.0 * 1024.0),
         );
+        if report.normals == pipeline::NormalsAction::Cleared {
+            eprintln!(
+                "qemd: warning: the input's stored normals would be stale after denoising and were cleared (NaN); recompute them downstream"
+            );
+        }
+        if report.normals == pipeline::NormalsAction::Recomputed {
+            eprintln!("qemd: the stored normals were recomputed from the denoised faces");
+        }
         if report.dropped_non_finite > 0 {
             eprintln!(
                 "qemd: warning: {} points with NaN, infinite or out-of-range (beyond ±1e12) coordinates were dropped",

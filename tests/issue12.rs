@@ -208,3 +208,176 @@ fn issue12_render_shared_las_by_class_from_the_top() {
     ]);
     assert_eq!(&std::fs::read(&png).unwrap()[1..4], b"PNG");
 }
+
+/// A noisy sphere mesh: positions and triangles (0-based).
+fn noisy_sphere() -> (Vec<glam::DVec3>, Vec<[u32; 3]>) {
+    use qem_denoise::eval::synth::Shape;
+    let m = Shape::Sphere.mesh(3).unwrap();
+    let pos: Vec<glam::DVec3> = m
+        .positions
+        .iter()
+        .enumerate()
+        .map(|(i, p)| *p * (1.0 + 0.01 * ((i * 7919 % 13) as f64 / 13.0 - 0.5)))
+        .collect();
+    let faces = m.faces.iter().map(|f| [f[0], f[1], f[2]]).collect();
+    (pos, faces)
+}
+
+/// The area-weighted vertex normals of a mesh.
+fn fresh(pos: &[glam::DVec3], faces: &[[u32; 3]]) -> Vec<glam::DVec3> {
+    use qem_denoise::denoise::NormalWeighting;
+    use qem_denoise::denoise::normals::vertex_normals;
+    use qem_denoise::points::Faces;
+    let mut f = Faces::new();
+    for t in faces {
+        f.push(t);
+    }
+    vertex_normals(pos, &f, NormalWeighting::Area).normals
+}
+
+/// Asserts `normals` are the area-weighted vertex normals of the mesh, pointing outwards.
+fn assert_fresh_normals(pos: &[glam::DVec3], faces: &[[u32; 3]], normals: &[glam::DVec3]) {
+    let want = fresh(pos, faces);
+    assert_eq!(normals.len(), want.len());
+    for (i, (n, w)) in normals.iter().zip(&want).enumerate() {
+        assert!(n.angle_between(*w) < 1e-5, "vertex {i}: {n} vs {w}");
+        assert!(n.dot(pos[i]) > 0.0, "outwards");
+    }
+}
+
+#[test]
+fn issue12_obj_vn_are_recomputed_not_stale() {
+    let dir = tempfile::tempdir().unwrap();
+    let (pos, faces) = noisy_sphere();
+    // The input's own normals, which go stale when the vertices move; faces reference them as
+    // v//vn.
+    let stale = fresh(&pos, &faces);
+    let mut obj = String::from("# sphere\n");
+    for p in &pos {
+        obj += &format!("v {} {} {}\n", p.x, p.y, p.z);
+    }
+    for n in &stale {
+        obj += &format!("vn {} {} {}\n", n.x, n.y, n.z);
+    }
+    for t in &faces {
+        obj += &format!(
+            "f {a}//{a} {b}//{b} {c}//{c}\n",
+            a = t[0] + 1,
+            b = t[1] + 1,
+            c = t[2] + 1
+        );
+    }
+    let input = dir.path().join("in.obj");
+    std::fs::write(&input, obj).unwrap();
+    let out = dir.path().join("out.obj");
+    let o = ok(&["denoise", s(&input), "-o", s(&out)]);
+    assert!(String::from_utf8_lossy(&o.stderr).contains("normals were recomputed"));
+    let text = std::fs::read_to_string(&out).unwrap();
+    let parse = |kw: &str| -> Vec<glam::DVec3> {
+        text.lines()
+            .filter(|l| l.starts_with(&format!("{kw} ")))
+            .map(|l| {
+                let v: Vec<f64> = l[kw.len() + 1..]
+                    .split_whitespace()
+                    .map(|t| t.parse().unwrap())
+                    .collect();
+                glam::DVec3::new(v[0], v[1], v[2])
+            })
+            .collect()
+    };
+    let (v, vn) = (parse("v"), parse("vn"));
+    assert_ne!(v, pos, "the vertices moved");
+    assert_fresh_normals(&v, &faces, &vn);
+    assert!(
+        vn.iter()
+            .zip(&stale)
+            .any(|(a, b)| a.angle_between(*b) > 1e-3),
+        "the stale normals are gone"
+    );
+    // Everything else is kept: the comment and the face lines.
+    assert!(text.starts_with("# sphere\n"));
+    assert_eq!(
+        text.lines().filter(|l| l.starts_with("f ")).count(),
+        faces.len()
+    );
+}
+
+#[test]
+fn issue12_ply_normals_recomputed_on_meshes_cleared_on_clouds() {
+    let dir = tempfile::tempdir().unwrap();
+    let (pos, faces) = noisy_sphere();
+    let mut ply = format!(
+        "ply\nformat ascii 1.0\nelement vertex {}\nproperty double x\nproperty double y\n\
+         property double z\nproperty float nx\nproperty float ny\nproperty float nz\n\
+         element face {}\nproperty list uchar int vertex_indices\nend_header\n",
+        pos.len(),
+        faces.len()
+    );
+    for (p, n) in pos.iter().zip(fresh(&pos, &faces)) {
+        ply += &format!("{} {} {} {} {} {}\n", p.x, p.y, p.z, n.x, n.y, n.z);
+    }
+    for t in &faces {
+        ply += &format!("3 {} {} {}\n", t[0], t[1], t[2]);
+    }
+    let input = dir.path().join("mesh.ply");
+    std::fs::write(&input, &ply).unwrap();
+    let out = dir.path().join("out.ply");
+    ok(&["denoise", s(&input), "-o", s(&out)]);
+    let c = qem_denoise::io::Cloud::read(&out, None).unwrap();
+    let sch = &c.info.schema;
+    let f = ["nx", "ny", "nz"].map(|n| sch.field_index(n).unwrap());
+    let normals: Vec<glam::DVec3> = c
+        .records
+        .chunks_exact(sch.record_len)
+        .map(|r| {
+            glam::DVec3::new(
+                sch.get_f64(r, f[0]),
+                sch.get_f64(r, f[1]),
+                sch.get_f64(r, f[2]),
+            )
+        })
+        .collect();
+    // Stored as float: compare in single precision.
+    let pos_out = c.positions.clone();
+    for (i, n) in normals.iter().enumerate() {
+        assert!(
+            n.dot(pos_out[i]) > 0.0 && (n.length() - 1.0).abs() < 1e-6,
+            "{i}: {n}"
+        );
+    }
+    let unit: Vec<glam::DVec3> = normals.iter().map(|n| n.normalize()).collect();
+    assert_fresh_normals(&pos_out, &faces, &unit);
+
+    // The same vertices as a point cloud (no faces): normals cleared, with a warning.
+    let cloud_ply = ply.replace(
+        &format!(
+            "element face {}\nproperty list uchar int vertex_indices\n",
+            faces.len()
+        ),
+        "",
+    );
+    let cloud_ply = cloud_ply
+        .lines()
+        .filter(|l| !l.starts_with("3 "))
+        .collect::<Vec<_>>()
+        .join("\n")
+        + "\n";
+    let input = dir.path().join("cloud.ply");
+    std::fs::write(&input, cloud_ply).unwrap();
+    for extra in [&[][..], &["--tile-points", "200"][..]] {
+        let out = dir.path().join("cloud-out.ply");
+        let mut args = vec!["denoise", s(&input), "-o", s(&out)];
+        args.extend_from_slice(extra);
+        let o = ok(&args);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(err.contains("normals would be stale"), "{err}");
+        let c = qem_denoise::io::Cloud::read(&out, None).unwrap();
+        let sch = &c.info.schema;
+        let nx = sch.field_index("nx").unwrap();
+        assert!(
+            c.records
+                .chunks_exact(sch.record_len)
+                .all(|r| sch.get_f64(r, nx).is_nan())
+        );
+    }
+}

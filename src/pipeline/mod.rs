@@ -25,8 +25,10 @@
 //! [`Report`] records what happened: counts, tiles, halo growths, bytes spilled, per-phase wall and
 //! CPU time, peak RSS.
 
+mod normals;
 mod progress;
 
+pub use normals::NormalsAction;
 pub use progress::{BarProgress, LogProgress, NoProgress, Progress};
 
 use std::path::{Path, PathBuf};
@@ -43,7 +45,7 @@ use crate::denoise::{self, DenoiseError, Method, Params, PhaseTiming, Stats, Tim
 use crate::geometry::ExactSum;
 use crate::io::{self, BATCH, Cloud, Extras, Format, IoError, SinkOptions, Source, SourceInfo};
 use crate::neighbours::{NeighboursError, with_cancel};
-use crate::points::{FLAG_NOISE, PointBatch, in_range};
+use crate::points::{FLAG_NOISE, PointBatch, Schema, in_range};
 use crate::tiling::plan::{Plan, Planner, SAMPLE};
 use crate::tiling::spill::{ResultMerge, SpillWriter, TileResult};
 use crate::tiling::{self, TilingError};
@@ -262,6 +264,9 @@ pub struct Report {
     pub threads: usize,
     /// Peak resident set size of the process in bytes (0 where unknown).
     pub peak_rss_bytes: u64,
+    /// What happened to normals stored in the input: recomputed (meshes) or cleared (clouds).
+    #[serde(default)]
+    pub normals: NormalsAction,
 }
 
 impl Report {
@@ -421,6 +426,7 @@ fn empty_report(job: &Job, mode: &str) -> Report {
         cpu_s: 0.0,
         threads: rayon::current_num_threads(),
         peak_rss_bytes: 0,
+        normals: NormalsAction::None,
     }
 }
 
@@ -437,6 +443,7 @@ fn run_mesh(job: &Job) -> Result<Report, PipelineError> {
         ..Stats::default()
     });
     cloud.positions = out.positions;
+    let normals = normals::recompute_mesh(&mut cloud);
     timer = Timer::start();
     cloud.write(&job.output, job.output_format)?;
     timer.lap("write", &mut phases);
@@ -444,6 +451,7 @@ fn run_mesh(job: &Job) -> Result<Report, PipelineError> {
     r.points_in = cloud.len() as u64;
     r.points_out = cloud.len() as u64;
     r.faces = cloud.faces().map_or(0, |f| f.len() as u64);
+    r.normals = normals;
     r.stats = stats;
     r.phases = phases.phases;
     Ok(r)
@@ -460,9 +468,38 @@ struct Assembler {
     keep_non_finite: bool,
     mode: OutlierMode,
     threshold: f64,
+    /// Stored normal fields to clear (they would be stale).
+    normals: Option<(Schema, [usize; 3])>,
 }
 
 impl Assembler {
+    fn new(info: &SourceInfo, mode: OutlierMode, threshold: f64) -> Assembler {
+        Assembler {
+            keep_non_finite: keeps_non_finite(info),
+            mode,
+            threshold,
+            normals: normals::normal_fields(&info.schema).map(|f| (info.schema.clone(), f)),
+        }
+    }
+
+    /// What the output does with stored normals.
+    fn normals_action(&self) -> NormalsAction {
+        if self.normals.is_some() {
+            NormalsAction::Cleared
+        } else {
+            NormalsAction::None
+        }
+    }
+
+    /// Appends a point to `out`, its stored normals cleared.
+    fn put(&self, out: &mut PointBatch, p: DVec3, record: &[u8]) {
+        out.push(p, record);
+        if let Some((schema, f)) = &self.normals {
+            let end = out.records.len();
+            normals::clear_points(schema, *f, &mut out.records[end - schema.record_len..end]);
+        }
+    }
+
     /// Appends input point `i` of `batch` to `out` given its result (None for non-finite points);
     /// returns whether it was flagged or removed as an outlier.
     fn push(
@@ -486,11 +523,11 @@ impl Assembler {
             if self.keep_non_finite {
                 // An organized cloud keeps its image layout: a removed point becomes a NaN
                 // placeholder, as its invalid points are.
-                out.push(DVec3::NAN, batch.record(i));
+                self.put(out, DVec3::NAN, batch.record(i));
             }
             return true;
         }
-        out.push(p, batch.record(i));
+        self.put(out, p, batch.record(i));
         if self.mode == OutlierMode::Classify {
             out.flags.push(if outlier { FLAG_NOISE } else { 0 });
         }
@@ -593,11 +630,11 @@ fn run_points_in_memory(job: &Job, opts: &RunOptions) -> Result<Report, Pipeline
         result.knn_mean.iter().copied().collect(),
         result.knn_mean.iter().map(|m| m * m).collect(),
     );
-    let asm = Assembler {
-        keep_non_finite: keeps_non_finite(&cloud.info),
-        mode: job.outliers,
-        threshold: threshold(&sum, &sq, job.outlier_alpha),
-    };
+    let asm = Assembler::new(
+        &cloud.info,
+        job.outliers,
+        threshold(&sum, &sq, job.outlier_alpha),
+    );
     let mut by_index: Vec<Option<(DVec3, f64)>> = vec![None; cloud.len()];
     for (j, &i) in finite.iter().enumerate() {
         by_index[i] = Some((result.positions[j], result.knn_mean[j]));
@@ -627,6 +664,7 @@ fn run_points_in_memory(job: &Job, opts: &RunOptions) -> Result<Report, Pipeline
     timer.lap("write", &mut phases);
 
     let mut r = empty_report(job, "points");
+    r.normals = asm.normals_action();
     r.points_in = cloud.len() as u64;
     r.points_out = out.len() as u64;
     r.dropped_non_finite = if asm.keep_non_finite {
@@ -992,11 +1030,7 @@ fn run_tiled(
     let kernel = std::mem::take(&mut stats.phases);
 
     // Pass 4: stitch.
-    let asm = Assembler {
-        keep_non_finite: keeps_non_finite(info),
-        mode: job.outliers,
-        threshold: threshold(&sum, &sq, job.outlier_alpha),
-    };
+    let asm = Assembler::new(info, job.outliers, threshold(&sum, &sq, job.outlier_alpha));
     let removed = if job.outliers == OutlierMode::Remove {
         let mut merge = ResultMerge::open(dir.path(), plan.tiles.len()).map_err(tiling_err)?;
         let mut n = 0u64;
@@ -1048,6 +1082,7 @@ fn run_tiled(
     drop(dir);
 
     let mut r = empty_report(job, "tiled");
+    r.normals = asm.normals_action();
     r.points_in = plan.points;
     r.points_out = written;
     r.dropped_non_finite = dropped;
