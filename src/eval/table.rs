@@ -429,14 +429,15 @@ mod tests {
         let mut calls = 0;
         let t = run_table_with_progress(&m.positions, &m.faces, &spec, &mut |p| {
             calls += 1;
-            assert_eq!(p.total, 6);
+            // The noisy input and three methods (issue 12: the default operator too), two seeds.
+            assert_eq!(p.total, 8);
         })
         .unwrap();
-        assert_eq!(calls, 6);
+        assert_eq!(calls, 8);
         let noisy = t.surf_std(NOISY, 0).unwrap();
         // Iso noise of σ = 0.2 L has a normal component of σ: about 20 % of L.
         assert!((noisy - 20.0).abs() < 3.0, "noisy {noisy}");
-        for method in ["qem", "bilateral"] {
+        for method in ["qem", "bilateral", "default"] {
             let s = t.surf_std(method, 0).unwrap();
             assert!(s < 0.8 * noisy, "{method}: {s} vs noisy {noisy}");
             let row = t.row(method).unwrap();
