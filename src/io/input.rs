@@ -69,6 +69,12 @@ impl InputFile {
         } else {
             path.to_path_buf()
         };
+        if is_stdio(path) && std::io::IsTerminal::is_terminal(&std::io::stdin()) {
+            return Err(IoError::invalid(
+                &shown,
+                "standard input is a terminal; pipe or redirect a scan into it",
+            ));
+        }
         let dir = temp_dir.map_or_else(std::env::temp_dir, Path::to_path_buf);
         let mut tmp = tempfile::Builder::new()
             .prefix(".qemd-stdin.")

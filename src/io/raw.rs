@@ -225,10 +225,10 @@ fn refuse_nuscenes_as_kitti(path: &Path, file: &mut File, size: u64) -> Result<(
     let hint = "looks like a nuScenes sweep (5 float32 per point: x, y, z, intensity, ring); \
                 name it *.pcd.bin or give --input-format nuscenes (--bin-fields x,y,z,i reads \
                 it as KITTI anyway)";
-    if size % NU != 0 {
+    if !size.is_multiple_of(NU) {
         return Ok(());
     }
-    if size % RECORD_LEN as u64 != 0 {
+    if !size.is_multiple_of(RECORD_LEN as u64) {
         return Err(IoError::invalid(path, hint));
     }
     let records = (size / NU).min(4096) as usize;
