@@ -9,7 +9,10 @@
 //! * A [`Sink`] is created *like* a source ([`create`]): it reproduces the source's header, property
 //!   types and encoding, writes batches, and in [`Sink::finish`] writes the extras and atomically
 //!   renames its temporary file onto the target. A sink that is dropped without `finish` leaves
-//!   nothing behind.
+//!   nothing behind. Every output goes through [`AtomicFile`] ([`output`]): only regular files
+//!   (or missing paths) are renamed onto; `-`, devices and FIFOs are written directly.
+//! * Inputs that are streams (`-`, pipes, FIFOs) are spooled to a temporary file first
+//!   ([`input`]); [`open`] and [`Cloud::read`] do so by themselves.
 //! * [`Cloud`] is the in-memory convenience built on the two: read everything, write everything.
 //!
 //! Sinks take positions from `batch.positions` and every other byte of a record from

@@ -12,8 +12,12 @@
 //!   neighbourhoods, so they write the same bytes.
 //!
 //! The output is created *like* the input (same schema, property types, header, order) and
-//! appears atomically; the input is only ever opened for reading, and an output path naming the
-//! input is refused. Points of a point cloud that fail [`crate::points::in_range`] (a NaN or
+//! appears atomically (a stream — standard output, a device, a FIFO — is written directly; see
+//! [`crate::io::output`]); the input is only ever opened for reading, and an output path naming
+//! the input is refused. An input that is a stream (`-`, `/dev/stdin` from a pipe, a FIFO) is
+//! first spooled to the temporary directory ([`crate::io::input`]), since the passes below read
+//! it more than once. Stored normals are recomputed (meshes) or cleared (clouds), never written
+//! stale (`normals`). Points of a point cloud that fail [`crate::points::in_range`] (a NaN or
 //! infinite coordinate, or one beyond ±10¹², i.e. a corrupt record) are dropped and counted as
 //! they are read (organized PCD clouds keep them, unprocessed and unchanged). Outliers are
 //! flagged (keeping their input position) or removed as [`OutlierMode`] says.
