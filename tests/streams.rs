@@ -158,6 +158,10 @@ fn issue12_stdin_without_a_signature_needs_the_format() {
         "{err}"
     );
     assert!(o.stdout.is_empty());
+    let o = qemd_piped(&["denoise", "-", "-o", "-", "-q"], b"");
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(err.contains("<stdin>: empty input"), "{err}");
     let o = qemd_piped(
         &["denoise", "-", "-o", "-", "--input-format", "kitti", "-q"],
         &raw,

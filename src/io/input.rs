@@ -85,7 +85,10 @@ impl InputFile {
         } else {
             std::fs::File::open(path).and_then(|mut f| copy_stream(&mut f, tmp.as_file_mut()))
         };
-        copied.map_err(|e| IoError::io(&shown, e))?;
+        let bytes = copied.map_err(|e| IoError::io(&shown, e))?;
+        if bytes == 0 {
+            return Err(IoError::invalid(&shown, "empty input: nothing was read"));
+        }
         let spool = tmp.into_temp_path();
         let format = match format.or_else(|| Format::from_path(path).ok()) {
             Some(f) => f,
@@ -141,9 +144,10 @@ impl InputFile {
     }
 }
 
-/// Copies `from` to `to` with a fixed buffer.
-fn copy_stream(from: &mut impl Read, to: &mut std::fs::File) -> std::io::Result<()> {
+/// Copies `from` to `to` with a fixed buffer; returns the bytes copied.
+fn copy_stream(from: &mut impl Read, to: &mut std::fs::File) -> std::io::Result<u64> {
     let mut buf = vec![0u8; 1 << 20];
+    let mut total = 0u64;
     loop {
         let n = match from.read(&mut buf) {
             Ok(0) => break,
@@ -152,8 +156,9 @@ fn copy_stream(from: &mut impl Read, to: &mut std::fs::File) -> std::io::Result<
             Err(e) => return Err(e),
         };
         std::io::Write::write_all(to, &buf[..n])?;
+        total += n as u64;
     }
-    Ok(())
+    Ok(total)
 }
 
 #[cfg(test)]
