@@ -121,7 +121,8 @@ pub struct DenoiseArgs {
     pub input: PathBuf,
     /// Output file, or - for standard output; its extension picks the format unless --format is
     /// given (standard output and other streams default to the input's format). Regular files
-    /// are replaced atomically; devices, FIFOs and standard output are written directly.
+    /// are replaced atomically; devices, FIFOs and standard output are written directly (LAS/LAZ
+    /// needs to seek: towards a stream it is spooled to --temp-dir, then copied).
     #[arg(short, long)]
     pub output: PathBuf,
     /// Output format, overriding the extension.
