@@ -3,12 +3,13 @@
 //! Parsing (clap) and validation are kept apart, as in ripgrep: the raw flags here become a
 //! validated [`Params`] through [`DenoiseArgs::params`], and `main` only dispatches.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use clap::{Args, Parser, Subcommand, ValueEnum};
 
 use crate::denoise::{Method, NormalWeighting, Params, Planes, SolveKind};
 use crate::io::Format;
+use crate::io::raw::BinLayout;
 
 /// Feature-preserving denoising of meshes and point clouds with the Quadric Error Metric.
 #[derive(Debug, Parser)]
@@ -102,20 +103,39 @@ pub enum NormalsArg {
     Mean,
 }
 
+impl From<NormalWeighting> for NormalsArg {
+    fn from(n: NormalWeighting) -> NormalsArg {
+        match n {
+            NormalWeighting::Area => NormalsArg::Area,
+            NormalWeighting::Mean => NormalsArg::Mean,
+        }
+    }
+}
+
 /// Flags of `qemd denoise`.
 #[derive(Debug, Args)]
 pub struct DenoiseArgs {
-    /// Input file (.ply, .obj, .off, .las, .laz, .pcd, .xyz, .txt, .pts, .bin).
+    /// Input file (.ply, .obj, .off, .las, .laz, .pcd, .xyz, .txt, .pts, .bin), or - for
+    /// standard input (spooled to --temp-dir; the format is told from the content unless
+    /// --input-format is given).
     pub input: PathBuf,
-    /// Output file; its extension picks the format unless --format is given.
+    /// Output file, or - for standard output; its extension picks the format unless --format is
+    /// given (standard output and other streams default to the input's format). Regular files
+    /// are replaced atomically; devices, FIFOs and standard output are written directly (LAS/LAZ
+    /// needs to seek: towards a stream it is spooled to --temp-dir, then copied).
     #[arg(short, long)]
     pub output: PathBuf,
     /// Output format, overriding the extension.
-    #[arg(long, value_parser = parse_format)]
+    #[arg(long, visible_alias = "output-format", ignore_case = true, value_parser = format_parser())]
     pub format: Option<Format>,
-    /// Input format, overriding the extension.
-    #[arg(long, value_parser = parse_format)]
+    /// Input format, overriding the extension and the content.
+    #[arg(long, ignore_case = true, value_parser = format_parser())]
     pub input_format: Option<Format>,
+    /// Layout of raw little-endian float32 .bin records, input and output: comma-separated x, y,
+    /// z, intensity (i), ring, time (t) and _ (unnamed), or a count N (x, y, z and N − 3
+    /// unnamed). Default: KITTI x,y,z,i for *.bin, nuScenes x,y,z,i,ring for *.pcd.bin.
+    #[arg(long, value_name = "FIELDS|N", value_parser = BinLayout::parse)]
+    pub bin_fields: Option<BinLayout>,
     /// Denoising method.
     #[arg(long, value_enum, default_value_t = MethodArg::Qem)]
     pub method: MethodArg,
@@ -133,9 +153,9 @@ pub struct DenoiseArgs {
     /// QEM updates per cycle. Default 5 on meshes, 2 on clouds.
     #[arg(long)]
     pub updates: Option<usize>,
-    /// Relative step penalty of the damped solve (default 0.5).
-    #[arg(long)]
-    pub mu: Option<f64>,
+    /// Relative step penalty of the damped solve.
+    #[arg(long, default_value_t = Params::default().mu)]
+    pub mu: f64,
     /// Lower bound of the normal filter's range width (default 0.35 meshes, 0.2 clouds).
     #[arg(long)]
     pub sigma_r: Option<f64>,
@@ -151,25 +171,25 @@ pub struct DenoiseArgs {
     /// beyond the operator's own bound of 3 × the local noise.
     #[arg(long, value_name = "DISTANCE")]
     pub max_move: Option<f64>,
-    /// k-ring size of tangent planes in mesh mode (the vertex itself included). Default 2.
-    #[arg(long)]
-    pub rings: Option<usize>,
+    /// k-ring size of tangent planes in mesh mode (the vertex itself included).
+    #[arg(long, default_value_t = Params::default().rings)]
+    pub rings: usize,
     /// Neighbourhood size in point mode (the point itself included); forces point mode. Default
     /// 16 on point clouds; meshes run on k-rings unless it is given.
     #[arg(long)]
     pub knn: Option<usize>,
     /// Mesh vertex normals.
-    #[arg(long, value_enum)]
-    pub normals: Option<NormalsArg>,
+    #[arg(long, value_enum, default_value_t = NormalsArg::from(Params::default().normals))]
+    pub normals: NormalsArg,
     /// How the quadric minimiser is found.
     #[arg(long, value_enum)]
     pub solve: Option<SolveArg>,
-    /// Relative eigenvalue cut-off of the robust solve (default 0.01).
-    #[arg(long)]
-    pub eps: Option<f64>,
-    /// Step penalty of the regularised solve (default 0.1).
-    #[arg(long)]
-    pub lambda: Option<f64>,
+    /// Relative eigenvalue cut-off of the robust solve.
+    #[arg(long, default_value_t = Params::default().eps)]
+    pub eps: f64,
+    /// Step penalty of the regularised solve.
+    #[arg(long, default_value_t = Params::default().lambda)]
+    pub lambda: f64,
     /// Cycles (QEM: normal filter then updates; default 0, which chooses from the data on meshes
     /// and is 1 on clouds) or passes (bilateral, default 3).
     #[arg(long)]
@@ -184,13 +204,17 @@ pub struct DenoiseArgs {
     /// Outlier threshold: mean k-NN distance above mean + ALPHA·σ (default from config: 2).
     #[arg(long)]
     pub outlier_alpha: Option<f64>,
-    /// Memory budget; clouds whose working set is larger run in tiles (e.g. "1 GiB").
+    /// Memory budget; clouds whose working set is larger run in tiles (e.g. "4 GiB"). Default:
+    /// `memory_budget` of the configuration, 1 GiB unless set there or in QEMD_MEMORY_BUDGET.
     #[arg(long)]
     pub memory_budget: Option<bytesize::ByteSize>,
-    /// Directory for spill files (default: the system temporary directory).
+    /// Directory for spill files and the spool of standard input; must exist (default:
+    /// `temp_dir` of the configuration, else the system temporary directory). A tiled run needs
+    /// about 88 bytes per point free there (checked before it starts).
     #[arg(long)]
     pub temp_dir: Option<PathBuf>,
-    /// Force tiling with about this many points per tile.
+    /// Force tiling with about this many points per tile (default: tiles only for clouds over
+    /// the memory budget, sized to it).
     #[arg(long)]
     pub tile_points: Option<u64>,
     /// Configuration file (overrides config/default.toml; QEMD_* variables override it).
@@ -220,7 +244,39 @@ pub fn parse_format(s: &str) -> Result<Format, String> {
     Format::from_name(s).ok_or_else(|| format!("unknown format `{s}`"))
 }
 
+/// The `--format` parser: lists [`Format::NAMES`] in the help and maps a name to its format.
+fn format_parser() -> impl clap::builder::TypedValueParser<Value = Format> {
+    use clap::builder::TypedValueParser as _;
+    clap::builder::PossibleValuesParser::new(Format::NAMES)
+        .map(|s| Format::from_name(&s).expect("every listed name parses"))
+}
+
+/// The format of one side of a run given `--bin-fields`: a raw format (given, told by the
+/// extension, or untold, as for standard input) takes the layout; any other stays.
+fn with_layout(given: Option<Format>, path: &Path, layout: Option<BinLayout>) -> Option<Format> {
+    let Some(layout) = layout else {
+        return given;
+    };
+    let raw = match given {
+        Some(f) => f.bin_layout().is_some(),
+        None => Format::from_path(path).map_or(true, |f| f.bin_layout().is_some()),
+    };
+    if raw {
+        Some(Format::Bin(layout))
+    } else {
+        given
+    }
+}
+
 impl DenoiseArgs {
+    /// The input and output formats these flags select (`None`: from the extension or content).
+    pub fn formats(&self) -> (Option<Format>, Option<Format>) {
+        (
+            with_layout(self.input_format, &self.input, self.bin_fields),
+            with_layout(self.format, &self.output, self.bin_fields),
+        )
+    }
+
     /// The parameters these flags select, on top of the defaults (or of the paper's operator
     /// with `--paper`); not yet validated.
     pub fn params(&self) -> Params {
@@ -237,15 +293,11 @@ impl DenoiseArgs {
             knn: self.knn,
             ..base
         };
-        if let Some(r) = self.rings {
-            p.rings = r;
-        }
-        if let Some(n) = self.normals {
-            p.normals = match n {
-                NormalsArg::Area => NormalWeighting::Area,
-                NormalsArg::Mean => NormalWeighting::Mean,
-            };
-        }
+        p.rings = self.rings;
+        p.normals = match self.normals {
+            NormalsArg::Area => NormalWeighting::Area,
+            NormalsArg::Mean => NormalWeighting::Mean,
+        };
         if let Some(pl) = self.planes {
             p.planes = match pl {
                 PlanesArg::Face => Planes::Face,
@@ -266,15 +318,9 @@ impl DenoiseArgs {
         if self.updates.is_some() {
             p.updates = self.updates;
         }
-        if let Some(e) = self.eps {
-            p.eps = e;
-        }
-        if let Some(l) = self.lambda {
-            p.lambda = l;
-        }
-        if let Some(m) = self.mu {
-            p.mu = m;
-        }
+        p.eps = self.eps;
+        p.lambda = self.lambda;
+        p.mu = self.mu;
         if self.sigma_r.is_some() {
             p.sigma_r = self.sigma_r;
         }
@@ -401,6 +447,32 @@ pub struct RenderArgs {
     /// Image size in pixels, WIDTHxHEIGHT.
     #[arg(long, default_value = "800x800")]
     pub size: String,
+    /// The up axis (default: z for LAS, PCD, KITTI and nuScenes, y otherwise).
+    #[arg(long, value_enum)]
+    pub up: Option<UpArg>,
+    /// Colour points by height, intensity or class (default: one colour, shaded by normal).
+    #[arg(long, visible_alias = "color", value_enum)]
+    pub colour: Option<ColourArg>,
+}
+
+/// `qemd render --up`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum UpArg {
+    /// +y up.
+    Y,
+    /// +z up (`--view top` looks down).
+    Z,
+}
+
+/// `qemd render --colour`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum ColourArg {
+    /// Height along the up axis.
+    Height,
+    /// The `intensity` (or `reflectance`) field, 1st to 99th percentile.
+    Intensity,
+    /// The LAS classification, or a `class`/`label` field (ASPRS colours).
+    Class,
 }
 
 /// Flags of `qemd demo`.

@@ -134,11 +134,12 @@ fn init_threads(threads: Option<usize>) -> Result<()> {
 fn denoise(a: DenoiseArgs) -> Result<()> {
     init_threads(a.threads)?;
     let config = Config::load(a.config.as_deref())?;
+    let (input_format, output_format) = a.formats();
     let job = Job {
         input: a.input.clone(),
         output: a.output.clone(),
-        input_format: a.input_format,
-        output_format: a.format,
+        input_format,
+        output_format,
         params: a.params(),
         outliers: match a.outliers {
             OutliersArg::Off => OutlierMode::Off,
@@ -195,6 +196,14 @@ fn denoise(a: DenoiseArgs) -> Result<()> {
             report.cpu_s,
             report.peak_rss_bytes as f64 / (1024.0 * 1024.0),
         );
+        if report.normals == pipeline::NormalsAction::Cleared {
+            eprintln!(
+                "qemd: warning: the input's stored normals would be stale after denoising and were cleared (NaN); recompute them downstream"
+            );
+        }
+        if report.normals == pipeline::NormalsAction::Recomputed {
+            eprintln!("qemd: the stored normals were recomputed from the denoised faces");
+        }
         if report.dropped_non_finite > 0 {
             eprintln!(
                 "qemd: warning: {} points with NaN, infinite or out-of-range (beyond ±1e12) coordinates were dropped",
@@ -273,10 +282,15 @@ fn noise(a: NoiseArgs) -> Result<()> {
     cloud.positions = noisy.positions;
     cloud.write(&a.output, None)?;
     eprintln!(
-        "qemd: {} points displaced with σ = {:.6e} ({} × L = {:.6e})",
-        noisy.displaced, noisy.sigma, a.level, noisy.l
+        "qemd: {}",
+        noise_summary(noisy.displaced, a.level, noisy.sigma, noisy.l)
     );
     Ok(())
+}
+
+/// The line `qemd noise` prints: σ is `level × L`, and L is printed on its own.
+fn noise_summary(displaced: usize, level: f64, sigma: f64, l: f64) -> String {
+    format!("{displaced} points displaced with σ = {level} × L = {sigma:.6e} (L = {l:.6e})")
 }
 
 fn harm(a: HarmArgs) -> Result<()> {
@@ -398,11 +412,63 @@ fn render_options(view: &str, size: &str) -> Result<RenderOptions> {
 }
 
 fn render_cmd(a: RenderArgs) -> Result<()> {
-    let options = render_options(&a.view, &a.size)?;
+    use qem_denoise::cli::{ColourArg, UpArg};
+    use qem_denoise::eval::render::{ColourBy, Up, render_with};
+    let mut options = render_options(&a.view, &a.size)?;
     let cloud = Cloud::read(&a.input, None)?;
-    let image = render(&cloud.positions, cloud.faces(), &options)?;
+    options.up = match a.up {
+        Some(UpArg::Y) => Up::Y,
+        Some(UpArg::Z) => Up::Z,
+        None => Up::of_format(cloud.info.format),
+    };
+    options.colour_by = a.colour.map(|c| match c {
+        ColourArg::Height => ColourBy::Height,
+        ColourArg::Intensity => ColourBy::Intensity,
+        ColourArg::Class => ColourBy::Class,
+    });
+    let values =
+        render_values(&cloud, options.colour_by).with_context(|| a.input.display().to_string())?;
+    let image = render_with(&cloud.positions, cloud.faces(), values.as_deref(), &options)
+        .with_context(|| a.input.display().to_string())?;
     image.save(&a.output)?;
     Ok(())
+}
+
+/// The per-point values `--colour intensity|class` reads from the file's records.
+fn render_values(
+    cloud: &Cloud,
+    by: Option<qem_denoise::eval::render::ColourBy>,
+) -> Result<Option<Vec<f64>>> {
+    use qem_denoise::eval::render::ColourBy;
+    use qem_denoise::eval::scans::{ClassSource, classes_of};
+    let schema = &cloud.info.schema;
+    let rl = schema.record_len.max(1);
+    match by {
+        Some(ColourBy::Intensity) => {
+            let field = ["intensity", "reflectance", "scalar_intensity", "i"]
+                .iter()
+                .find_map(|n| schema.field_index(n));
+            Ok(field.map(|i| {
+                cloud
+                    .records
+                    .chunks_exact(rl)
+                    .map(|r| schema.get_f64(r, i))
+                    .collect()
+            }))
+        }
+        Some(ColourBy::Class) => {
+            let has_field = ["classification", "class", "label"]
+                .iter()
+                .any(|n| schema.field_index(n).is_some());
+            if !has_field {
+                return Ok(None);
+            }
+            let c = classes_of(cloud)?;
+            Ok((c.source != ClassSource::Structure)
+                .then(|| c.codes.iter().map(|&v| f64::from(v)).collect()))
+        }
+        _ => Ok(None),
+    }
 }
 
 fn demo(a: DemoArgs) -> Result<()> {

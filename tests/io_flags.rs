@@ -13,7 +13,10 @@ mod io_flags {
     use qem_denoise::io::{self, Cloud, Format, IoError, Meta, SinkOptions};
     use qem_denoise::points::{Endian, FLAG_NOISE, PointBatch, ScalarType, write_scalar};
 
-    const NOISE: SinkOptions = SinkOptions { noise_flag: true };
+    const NOISE: SinkOptions = SinkOptions {
+        noise_flag: true,
+        temp_dir: None,
+    };
 
     // ---------------------------------------------------------------------------------------------
     // Helpers.

@@ -634,7 +634,10 @@ mod io_las {
             build(&src, &spec, 9);
             let c = Cloud::read(&src, None).unwrap();
             let dst = dir.path().join(format!("n{pdrf}_out.{e}"));
-            let opts = SinkOptions { noise_flag: true };
+            let opts = SinkOptions {
+                noise_flag: true,
+                ..SinkOptions::default()
+            };
             let mut sink = io::create_with(&dst, None, &c.info, c.len() as u64, &opts).unwrap();
             let mut batch = PointBatch::with_capacity(c.info.schema.record_len, c.len());
             batch.positions.extend_from_slice(&c.positions);
@@ -680,7 +683,10 @@ mod io_las {
             None,
             &g.info,
             1,
-            &SinkOptions { noise_flag: true },
+            &SinkOptions {
+                noise_flag: true,
+                ..SinkOptions::default()
+            },
         )
         .err()
         .unwrap();

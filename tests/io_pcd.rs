@@ -624,7 +624,10 @@ mod io_pcd {
             None,
             &c.info,
             c.len() as u64,
-            &SinkOptions { noise_flag: true },
+            &SinkOptions {
+                noise_flag: true,
+                ..SinkOptions::default()
+            },
         )
         .unwrap();
         let mut b = PointBatch::with_capacity(c.info.schema.record_len, c.len());
@@ -700,7 +703,10 @@ mod io_pcd {
             None,
             &c.info,
             6,
-            &SinkOptions { noise_flag: true },
+            &SinkOptions {
+                noise_flag: true,
+                ..SinkOptions::default()
+            },
         );
         assert!(matches!(e, Err(IoError::Unsupported { .. })));
     }

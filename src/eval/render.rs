@@ -11,6 +11,10 @@
 //!   inconsistently oriented or open meshes still read well.
 //! * Point clouds are drawn as depth-tested discs, shaded by a PCA normal over their nearest
 //!   points or coloured by depth.
+//! * [`Up`] says which model axis is up: y (the default) or z (LiDAR and robotics data, whose
+//!   `top` view then looks straight down); z-up data are turned by −90° about x into the
+//!   renderer's y-up frame. [`ColourBy`] gives points (and mesh faces, by their vertices' mean)
+//!   a base colour by height, intensity or class before shading.
 //!
 //! ```text
 //!  screen:  (0,0) ──── x ────▶ (width,0)        camera basis: right = up_world × eye (or +x)
@@ -136,6 +140,49 @@ pub enum PointShading {
     Depth,
 }
 
+/// Which model axis points up on the screen.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Up {
+    /// +y up (meshes, most graphics formats).
+    #[default]
+    Y,
+    /// +z up (LiDAR, robotics: LAS, PCD, KITTI, nuScenes); `top` then looks down −z.
+    Z,
+}
+
+impl Up {
+    /// The usual up axis of `format`: z for LiDAR and robotics formats, y otherwise.
+    pub fn of_format(format: crate::io::Format) -> Up {
+        use crate::io::Format;
+        match format {
+            Format::Las | Format::Pcd | Format::Kitti | Format::Nuscenes | Format::Bin(_) => Up::Z,
+            _ => Up::Y,
+        }
+    }
+
+    /// `p` in the renderer's y-up frame (a rotation: z-up data turn by −90° about x).
+    fn to_y_up(self, p: DVec3) -> DVec3 {
+        match self {
+            Up::Y => p,
+            Up::Z => DVec3::new(p.x, p.z, -p.y),
+        }
+    }
+}
+
+/// What gives each point (or mesh vertex) its base colour, before shading.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum ColourBy {
+    /// The height along the up axis, on a blue–green–yellow–red ramp from lowest to highest.
+    Height,
+    /// A per-point intensity, on the same ramp from its 1st to its 99th percentile.
+    Intensity,
+    /// A per-point class (ASPRS LAS codes: ground brown, vegetation greens, buildings orange,
+    /// noise magenta, water blue; other codes a fixed palette).
+    Class,
+}
+
 /// What to draw and how.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 #[serde(default)]
@@ -158,6 +205,10 @@ pub struct RenderOptions {
     pub background: [u8; 3],
     /// Surface colour before shading.
     pub colour: [u8; 3],
+    /// Which model axis is up.
+    pub up: Up,
+    /// Colour by height, intensity or class instead of [`RenderOptions::colour`].
+    pub colour_by: Option<ColourBy>,
 }
 
 impl Default for RenderOptions {
@@ -172,6 +223,8 @@ impl Default for RenderOptions {
             margin: 0.05,
             background: [255, 255, 255],
             colour: [170, 190, 215],
+            up: Up::Y,
+            colour_by: None,
         }
     }
 }
@@ -388,7 +441,28 @@ pub fn render(
     faces: Option<&Faces>,
     opts: &RenderOptions,
 ) -> Result<Image, EvalError> {
+    render_with(positions, faces, None, opts)
+}
+
+/// [`render`] with one value per point for [`ColourBy::Intensity`] or [`ColourBy::Class`].
+///
+/// # Errors
+/// As [`render`]; colouring by intensity or class without values (or with a wrong count).
+pub fn render_with(
+    positions: &[DVec3],
+    faces: Option<&Faces>,
+    values: Option<&[f64]>,
+    opts: &RenderOptions,
+) -> Result<Image, EvalError> {
     opts.validate()?;
+    let rotated: Vec<DVec3>;
+    let positions = if opts.up == Up::Y {
+        positions
+    } else {
+        rotated = positions.iter().map(|&p| opts.up.to_y_up(p)).collect();
+        &rotated
+    };
+    let base = base_colours(positions, values, opts)?;
     let faces = faces.filter(|f| !f.is_empty());
     if let Some(f) = faces {
         check_faces(positions.len(), f)?;
@@ -410,16 +484,135 @@ pub fn render(
                 .filter(|(p, u)| *u && p.is_finite())
                 .map(|(p, _)| *p);
             let cam = Camera::fit(pts, origin, opts);
-            render_mesh(positions, f, &cam, opts)
+            render_mesh(positions, f, &cam, opts, &base)
         }
         None => {
             let cam = Camera::fit(finite(), origin, opts);
-            render_points(positions, &cam, opts)?
+            render_points(positions, &cam, opts, &base)?
         }
     })
 }
 
-fn render_mesh(pos: &[DVec3], faces: &Faces, cam: &Camera, opts: &RenderOptions) -> Image {
+/// The ramp of height and intensity colouring, low to high.
+const RAMP: [[f64; 3]; 5] = [
+    [48.0, 18.0, 160.0],
+    [30.0, 130.0, 230.0],
+    [60.0, 190.0, 90.0],
+    [240.0, 210.0, 40.0],
+    [215.0, 40.0, 30.0],
+];
+
+/// The ramp colour at `t` in [0, 1].
+fn ramp(t: f64) -> [u8; 3] {
+    let t = if t.is_finite() {
+        t.clamp(0.0, 1.0)
+    } else {
+        0.0
+    };
+    let x = t * (RAMP.len() - 1) as f64;
+    let i = (x.floor() as usize).min(RAMP.len() - 2);
+    let f = x - i as f64;
+    let (a, b) = (RAMP[i], RAMP[i + 1]);
+    [0, 1, 2].map(|c| (a[c] + (b[c] - a[c]) * f).round() as u8)
+}
+
+/// The colour of ASPRS class `code`.
+fn class_colour(code: f64) -> [u8; 3] {
+    match code as i64 {
+        2 => [150, 110, 60],
+        3 => [150, 215, 110],
+        4 => [70, 170, 60],
+        5 => [20, 110, 30],
+        6 => [235, 120, 40],
+        7 | 18 => [230, 30, 200],
+        9 => [40, 90, 230],
+        c => {
+            const PALETTE: [[u8; 3]; 6] = [
+                [160, 160, 160],
+                [90, 200, 200],
+                [200, 90, 90],
+                [120, 120, 220],
+                [220, 200, 120],
+                [110, 60, 150],
+            ];
+            PALETTE[c.rem_euclid(PALETTE.len() as i64) as usize]
+        }
+    }
+}
+
+/// The base colour of every point, before shading.
+fn base_colours(
+    pos: &[DVec3],
+    values: Option<&[f64]>,
+    opts: &RenderOptions,
+) -> Result<Vec<[u8; 3]>, EvalError> {
+    let Some(by) = opts.colour_by else {
+        return Ok(vec![opts.colour; pos.len()]);
+    };
+    let heights: Vec<f64>;
+    let v: &[f64] = match (by, values) {
+        // Positions are in the y-up frame here.
+        (ColourBy::Height, _) => {
+            heights = pos.iter().map(|p| p.y).collect();
+            &heights
+        }
+        (_, Some(v)) if v.len() == pos.len() => v,
+        (_, Some(v)) => {
+            return Err(EvalError::Param {
+                name: "colour",
+                detail: format!("{} values for {} points", v.len(), pos.len()),
+            });
+        }
+        (_, None) => {
+            return Err(EvalError::Param {
+                name: "colour",
+                detail: format!(
+                    "colouring by {} needs a per-point {} field, and the input has none",
+                    if by == ColourBy::Class {
+                        "class"
+                    } else {
+                        "intensity"
+                    },
+                    if by == ColourBy::Class {
+                        "classification"
+                    } else {
+                        "intensity"
+                    }
+                ),
+            });
+        }
+    };
+    if by == ColourBy::Class {
+        return Ok(v.iter().map(|&c| class_colour(c)).collect());
+    }
+    let mut finite: Vec<f64> = v
+        .iter()
+        .zip(pos)
+        .filter(|(x, p)| x.is_finite() && p.is_finite())
+        .map(|(x, _)| *x)
+        .collect();
+    if finite.is_empty() {
+        return Ok(vec![opts.colour; pos.len()]);
+    }
+    finite.sort_by(f64::total_cmp);
+    let (lo, hi) = match by {
+        ColourBy::Intensity => (
+            finite[finite.len() / 100],
+            finite[(finite.len() * 99 / 100).min(finite.len() - 1)],
+        ),
+        _ => (finite[0], finite[finite.len() - 1]),
+    };
+    let span = if hi > lo { hi - lo } else { 1.0 };
+    Ok(v.iter().map(|&x| ramp((x - lo) / span)).collect())
+}
+
+fn render_mesh(
+    pos: &[DVec3],
+    faces: &Faces,
+    cam: &Camera,
+    opts: &RenderOptions,
+    base: &[[u8; 3]],
+) -> Image {
     let mut target = Target::new(opts);
     let light = cam.light();
     let screen: Vec<DVec3> = pos.iter().map(|&p| cam.project(p)).collect();
@@ -432,6 +625,17 @@ fn render_mesh(pos: &[DVec3], faces: &Faces, cam: &Camera, opts: &RenderOptions)
             continue;
         }
         let flat = face_cross(pos, face).normalize_or_zero();
+        let colour = if opts.colour_by.is_none() {
+            opts.colour
+        } else {
+            let mut sum = [0.0f64; 3];
+            for &v in face {
+                for (c, s) in sum.iter_mut().enumerate() {
+                    *s += f64::from(base[v as usize][c]);
+                }
+            }
+            sum.map(|s| (s / face.len() as f64).round() as u8)
+        };
         for i in 1..face.len().saturating_sub(1) {
             let t = [face[0], face[i], face[i + 1]].map(|v| v as usize);
             let s = t.map(|v| screen[v]);
@@ -442,9 +646,7 @@ fn render_mesh(pos: &[DVec3], faces: &Faces, cam: &Camera, opts: &RenderOptions)
                     n.try_normalize().unwrap_or(flat)
                 }
             };
-            raster_triangle(&mut target, s, |b| {
-                shade(opts.colour, normal(b), cam, light)
-            });
+            raster_triangle(&mut target, s, |b| shade(colour, normal(b), cam, light));
         }
     }
     target.into_image()
@@ -491,7 +693,12 @@ fn raster_triangle(target: &mut Target, s: [DVec3; 3], colour: impl Fn([f64; 3])
     }
 }
 
-fn render_points(pos: &[DVec3], cam: &Camera, opts: &RenderOptions) -> Result<Image, EvalError> {
+fn render_points(
+    pos: &[DVec3],
+    cam: &Camera,
+    opts: &RenderOptions,
+    base: &[[u8; 3]],
+) -> Result<Image, EvalError> {
     let mut target = Target::new(opts);
     let light = cam.light();
     let count = pos.iter().filter(|p| p.is_finite()).count();
@@ -510,16 +717,17 @@ fn render_points(pos: &[DVec3], cam: &Camera, opts: &RenderOptions) -> Result<Im
             let (normals, _) = pca_normals(pos, &lists);
             normals
                 .iter()
-                .map(|&n| {
+                .zip(base)
+                .map(|(&n, &c)| {
                     if n == DVec3::ZERO {
-                        opts.colour
+                        c
                     } else {
-                        shade(opts.colour, n, cam, light)
+                        shade(c, n, cam, light)
                     }
                 })
                 .collect()
         }
-        PointShading::Normal => vec![opts.colour; pos.len()],
+        PointShading::Normal => base.to_vec(),
         PointShading::Depth => {
             let (lo, hi) = screen
                 .iter()
@@ -529,10 +737,11 @@ fn render_points(pos: &[DVec3], cam: &Camera, opts: &RenderOptions) -> Result<Im
                 });
             screen
                 .iter()
-                .map(|s| {
+                .zip(base)
+                .map(|(s, b)| {
                     let t = if hi > lo { (s.z - lo) / (hi - lo) } else { 1.0 };
                     let k = AMBIENT + (1.0 - AMBIENT) * t;
-                    opts.colour.map(|c| (c as f64 * k).round() as u8)
+                    b.map(|c| (c as f64 * k).round() as u8)
                 })
                 .collect()
         }
@@ -574,6 +783,102 @@ mod tests {
             view,
             ..RenderOptions::default()
         }
+    }
+
+    /// A z-up ground grid 10 × 10 at z = 0 with a wall 1 high along x = 0.
+    fn ground() -> Vec<DVec3> {
+        let mut v = Vec::new();
+        for i in 0..40 {
+            for j in 0..40 {
+                v.push(DVec3::new(i as f64 * 0.25, j as f64 * 0.25, 0.0));
+            }
+        }
+        for j in 0..40 {
+            for k in 1..5 {
+                v.push(DVec3::new(0.0, j as f64 * 0.25, k as f64 * 0.25));
+            }
+        }
+        v
+    }
+
+    fn covered(img: &Image, bg: [u8; 3]) -> usize {
+        (0..img.height)
+            .flat_map(|y| (0..img.width).map(move |x| (x, y)))
+            .filter(|&(x, y)| img.pixel(x, y) != bg)
+            .count()
+    }
+
+    #[test]
+    fn issue12_top_view_of_z_up_data_looks_down() {
+        let pts = ground();
+        let o = RenderOptions {
+            up: Up::Z,
+            point_radius: Some(2.0),
+            ..opts(View::Top)
+        };
+        let down = render(&pts, None, &o).unwrap();
+        let side_on = render(
+            &pts,
+            None,
+            &RenderOptions {
+                up: Up::Y,
+                ..o.clone()
+            },
+        )
+        .unwrap();
+        let (a, b) = (
+            covered(&down, o.background),
+            covered(&side_on, o.background),
+        );
+        // Looking down, the ground fills the picture; with y up it is seen edge-on.
+        assert!(a > 64 * 48 / 3, "top view of z-up ground covers {a} pixels");
+        assert!(a > 2 * b, "{a} vs {b}");
+        assert_eq!(Up::of_format(crate::io::Format::Las), Up::Z);
+        assert_eq!(Up::of_format(crate::io::Format::Nuscenes), Up::Z);
+        assert_eq!(Up::of_format(crate::io::Format::Ply), Up::Y);
+    }
+
+    #[test]
+    fn issue12_colour_by_height_intensity_and_class() {
+        let pts = ground();
+        let base = RenderOptions {
+            up: Up::Z,
+            colour_by: Some(ColourBy::Height),
+            point_shading: PointShading::Depth,
+            ..opts(View::Front)
+        };
+        let c = base_colours(&pts, None, &base).unwrap();
+        // The ground is the low end of the ramp (blue), the wall top the high end (red).
+        assert_eq!(c[0], ramp(0.0));
+        assert_eq!(*c.last().unwrap(), ramp(1.0));
+        assert!(c[0][2] > c[0][0] && c.last().unwrap()[0] > c.last().unwrap()[2]);
+        let o = RenderOptions {
+            colour_by: Some(ColourBy::Class),
+            ..base.clone()
+        };
+        let classes: Vec<f64> = pts
+            .iter()
+            .map(|p| if p.z > 0.0 { 6.0 } else { 2.0 })
+            .collect();
+        let c = base_colours(&pts, Some(&classes), &o).unwrap();
+        assert_eq!(c[0], class_colour(2.0));
+        assert_eq!(*c.last().unwrap(), class_colour(6.0));
+        assert_ne!(class_colour(2.0), class_colour(6.0));
+        let e = render_with(&pts, None, None, &o).unwrap_err().to_string();
+        assert!(e.contains("needs a per-point classification field"), "{e}");
+        // Intensity: the 1st–99th percentile spans the ramp; an outlier does not flatten it.
+        let mut inten: Vec<f64> = (0..pts.len()).map(|i| (i % 100) as f64).collect();
+        inten[5] = 1e9;
+        let o = RenderOptions {
+            colour_by: Some(ColourBy::Intensity),
+            ..base
+        };
+        let c = base_colours(&pts, Some(&inten), &o).unwrap();
+        assert_eq!(c[0], ramp(0.0));
+        assert_ne!(c[50], c[0]);
+        assert_ne!(c[50], ramp(1.0));
+        let img = render_with(&pts, None, Some(&inten), &o).unwrap();
+        assert!(covered(&img, o.background) > 0);
     }
 
     #[test]

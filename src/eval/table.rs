@@ -54,6 +54,11 @@ impl TableMethod {
         )
     }
 
+    /// qemd's default operator ([`Params::default`]): what `qemd denoise` runs without flags.
+    pub fn default_operator() -> TableMethod {
+        TableMethod::new("default", Params::default())
+    }
+
     /// The paper's comparator: bilateral filtering, 3 iterations.
     pub fn paper_bilateral() -> TableMethod {
         TableMethod::new(
@@ -81,13 +86,18 @@ pub struct TableSpec {
 }
 
 impl Default for TableSpec {
-    /// The paper's protocol: iso noise at 20, 40 and 80 % of L, seed 0, QEM and bilateral.
+    /// The paper's protocol: iso noise at 20, 40 and 80 % of L, seed 0; the paper's QEM, its
+    /// bilateral comparator, and qemd's default operator.
     fn default() -> Self {
         TableSpec {
             levels: vec![0.2, 0.4, 0.8],
             seeds: vec![0],
             model: NoiseModel::Iso,
-            methods: vec![TableMethod::paper_qem(), TableMethod::paper_bilateral()],
+            methods: vec![
+                TableMethod::paper_qem(),
+                TableMethod::paper_bilateral(),
+                TableMethod::default_operator(),
+            ],
         }
     }
 }
@@ -419,14 +429,15 @@ mod tests {
         let mut calls = 0;
         let t = run_table_with_progress(&m.positions, &m.faces, &spec, &mut |p| {
             calls += 1;
-            assert_eq!(p.total, 6);
+            // The noisy input and three methods (issue 12: the default operator too), two seeds.
+            assert_eq!(p.total, 8);
         })
         .unwrap();
-        assert_eq!(calls, 6);
+        assert_eq!(calls, 8);
         let noisy = t.surf_std(NOISY, 0).unwrap();
         // Iso noise of σ = 0.2 L has a normal component of σ: about 20 % of L.
         assert!((noisy - 20.0).abs() < 3.0, "noisy {noisy}");
-        for method in ["qem", "bilateral"] {
+        for method in ["qem", "bilateral", "default"] {
             let s = t.surf_std(method, 0).unwrap();
             assert!(s < 0.8 * noisy, "{method}: {s} vs noisy {noisy}");
             let row = t.row(method).unwrap();

@@ -9,7 +9,10 @@
 //! * A [`Sink`] is created *like* a source ([`create`]): it reproduces the source's header, property
 //!   types and encoding, writes batches, and in [`Sink::finish`] writes the extras and atomically
 //!   renames its temporary file onto the target. A sink that is dropped without `finish` leaves
-//!   nothing behind.
+//!   nothing behind. Every output goes through [`AtomicFile`] ([`output`]): only regular files
+//!   (or missing paths) are renamed onto; `-`, devices and FIFOs are written directly.
+//! * Inputs that are streams (`-`, pipes, FIFOs) are spooled to a temporary file first
+//!   ([`input`]); [`open`] and [`Cloud::read`] do so by themselves.
 //! * [`Cloud`] is the in-memory convenience built on the two: read everything, write everything.
 //!
 //! Sinks take positions from `batch.positions` and every other byte of a record from
@@ -51,17 +54,21 @@
 //!
 //! One backend per format lives in its own module; this module only dispatches.
 
-pub mod kitti;
+pub mod input;
 pub mod las;
 pub mod obj;
 pub mod off;
+pub mod output;
 pub mod pcd;
 pub mod ply;
+pub mod raw;
 pub mod sniff;
 pub mod text;
 
+pub use input::{InputFile, is_stream_input};
+pub use output::{AtomicFile, OutputTarget, STDIO, is_stdio, is_stream_output};
+
 use std::fs::File;
-use std::io::{BufWriter, Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
 
 use glam::DVec3;
@@ -154,6 +161,37 @@ impl IoError {
         }
     }
 
+    /// The same error naming `to` where it named `from` (a spooled stream shown by its name).
+    pub fn with_path(self, from: &Path, to: &Path) -> IoError {
+        let swap = |p: PathBuf| if p == from { to.to_path_buf() } else { p };
+        match self {
+            IoError::Io { path, error } => IoError::Io {
+                path: swap(path),
+                error,
+            },
+            IoError::Truncated { path, detail } => IoError::Truncated {
+                path: swap(path),
+                detail,
+            },
+            IoError::Header { path, detail } => IoError::Header {
+                path: swap(path),
+                detail,
+            },
+            IoError::Invalid { path, detail } => IoError::Invalid {
+                path: swap(path),
+                detail,
+            },
+            IoError::UnknownFormat { path, known } => IoError::UnknownFormat {
+                path: swap(path),
+                known,
+            },
+            IoError::Unsupported { path, detail } => IoError::Unsupported {
+                path: swap(path),
+                detail,
+            },
+        }
+    }
+
     /// The file ends early.
     pub fn truncated(path: &Path, detail: impl Into<String>) -> IoError {
         IoError::Truncated {
@@ -180,13 +218,17 @@ pub enum Format {
     Pts,
     /// KITTI Velodyne scan: little-endian `f32` x, y, z, intensity records (`.bin`).
     Kitti,
+    /// nuScenes LiDAR sweep: little-endian `f32` x, y, z, intensity, ring records (`.pcd.bin`).
+    Nuscenes,
+    /// Raw little-endian `f32` records of another layout (`--bin-fields`).
+    Bin(raw::BinLayout),
     /// Point Cloud Library PCD (ascii, binary, binary_compressed).
     Pcd,
     /// ASPRS LAS (`.las`), LAZ (`.laz`, compressed) and COPC (`.copc.laz`, read as LAZ).
     Las,
 }
 
-const KNOWN: &str = ".ply, .obj, .off, .xyz, .txt, .pts, .bin, .pcd, .las, .laz";
+const KNOWN: &str = ".ply, .obj, .off, .xyz, .txt, .pts, .bin, .pcd.bin, .pcd, .las, .laz";
 
 impl Format {
     /// Tells the format from a file extension (case-insensitive).
@@ -194,6 +236,13 @@ impl Format {
     /// # Errors
     /// [`IoError::UnknownFormat`] for an unknown or missing extension.
     pub fn from_path(path: &Path) -> Result<Format, IoError> {
+        let name = path
+            .file_name()
+            .map(|n| n.to_string_lossy().to_ascii_lowercase())
+            .unwrap_or_default();
+        if name.ends_with(".pcd.bin") {
+            return Ok(Format::Nuscenes);
+        }
         let ext = path
             .extension()
             .and_then(|e| e.to_str())
@@ -207,7 +256,7 @@ impl Format {
     }
 
     /// Parses a format name or extension (`ply`, `obj`, `off`, `xyz`, `txt`, `pts`, `bin`,
-    /// `kitti`, `pcd`, `las`, `laz`).
+    /// `kitti`, `nuscenes`, `pcd`, `las`, `laz`; see [`Format::NAMES`]).
     pub fn from_name(name: &str) -> Option<Format> {
         match name.to_ascii_lowercase().as_str() {
             "ply" => Some(Format::Ply),
@@ -216,6 +265,7 @@ impl Format {
             "xyz" | "txt" => Some(Format::Xyz),
             "pts" => Some(Format::Pts),
             "bin" | "kitti" => Some(Format::Kitti),
+            "nuscenes" | "pcd.bin" => Some(Format::Nuscenes),
             "pcd" => Some(Format::Pcd),
             "las" | "laz" => Some(Format::Las),
             _ => None,
@@ -231,8 +281,25 @@ impl Format {
             Format::Xyz => "xyz",
             Format::Pts => "pts",
             Format::Kitti => "bin",
+            Format::Nuscenes => "pcd.bin",
+            Format::Bin(_) => "bin",
             Format::Pcd => "pcd",
             Format::Las => "las",
+        }
+    }
+
+    /// The names [`Format::from_name`] accepts, for help texts.
+    pub const NAMES: &'static [&'static str] = &[
+        "ply", "obj", "off", "xyz", "txt", "pts", "pcd", "las", "laz", "kitti", "bin", "nuscenes",
+    ];
+
+    /// The record layout of a raw `f32` format (KITTI, nuScenes, [`Format::Bin`]).
+    pub fn bin_layout(self) -> Option<raw::BinLayout> {
+        match self {
+            Format::Kitti => Some(raw::BinLayout::KITTI),
+            Format::Nuscenes => Some(raw::BinLayout::NUSCENES),
+            Format::Bin(l) => Some(l),
+            _ => None,
         }
     }
 }
@@ -382,6 +449,9 @@ pub trait Sink {
 /// # Errors
 /// Unknown format, unreadable file, malformed header.
 pub fn open(path: &Path, format: Option<Format>) -> Result<Box<dyn Source>, IoError> {
+    if input::is_stream_input(path) {
+        return Spooled::open(path, format);
+    }
     let format = match format {
         Some(f) => f,
         None => Format::from_path(path)?,
@@ -392,20 +462,60 @@ pub fn open(path: &Path, format: Option<Format>) -> Result<Box<dyn Source>, IoEr
         Format::Off => Box::new(off::OffSource::open(path)?),
         Format::Xyz => Box::new(text::TextSource::open(path, text::TextFlavor::Xyz)?),
         Format::Pts => Box::new(text::TextSource::open(path, text::TextFlavor::Pts)?),
-        Format::Kitti => Box::new(kitti::KittiSource::open(path)?),
+        Format::Kitti | Format::Nuscenes | Format::Bin(_) => {
+            Box::new(raw::RawSource::open_as(path, format)?)
+        }
         Format::Pcd => Box::new(pcd::PcdSource::open(path)?),
         Format::Las => Box::new(las::LasSource::open(path)?),
     })
 }
 
+/// A source reading the spool of a stream ([`input::InputFile`]), which it owns; its info and
+/// errors name the stream.
+struct Spooled {
+    inner: Box<dyn Source>,
+    info: SourceInfo,
+    input: input::InputFile,
+}
+
+impl Spooled {
+    fn open(path: &Path, format: Option<Format>) -> Result<Box<dyn Source>, IoError> {
+        let input = input::InputFile::open(path, format, None)?;
+        let inner = open(input.path(), input.format()).map_err(|e| input.explain(e))?;
+        let mut info = inner.info().clone();
+        info.path = input.shown().to_path_buf();
+        Ok(Box::new(Spooled { inner, info, input }))
+    }
+}
+
+impl Source for Spooled {
+    fn info(&self) -> &SourceInfo {
+        &self.info
+    }
+
+    fn read_batch(&mut self, batch: &mut PointBatch, max: usize) -> Result<usize, IoError> {
+        self.inner
+            .read_batch(batch, max)
+            .map_err(|e| self.input.explain(e))
+    }
+
+    fn finish(self: Box<Self>) -> Result<Extras, IoError> {
+        let Spooled { inner, input, .. } = *self;
+        inner.finish().map_err(|e| input.explain(e))
+    }
+}
+
 /// What a sink adds to its source's layout.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
 pub struct SinkOptions {
     /// Write each point's noise flag ([`crate::points::FLAG_NOISE`] in `PointBatch::flags`):
     /// classification 7 in LAS, an extra `noise` value (0/1) in the formats that can carry one
     /// (PCD: a `noise` field, `SIZE 1`, `TYPE U`; PLY: a vertex property `uchar noise`; XYZ and
     /// PTS: a last column). KITTI, OBJ and OFF refuse it (see the [module overview](self)).
     pub noise_flag: bool,
+    /// Where a sink that must seek (LAS/LAZ) spools its output when the target is a stream
+    /// (standard output, a FIFO); the system temporary directory when `None`.
+    pub temp_dir: Option<PathBuf>,
 }
 
 /// Creates a sink at `path` that writes `count` points laid out like `like`. The format comes from
@@ -435,15 +545,28 @@ pub fn create_with(
     count: u64,
     options: &SinkOptions,
 ) -> Result<Box<dyn Sink>, IoError> {
+    // A directory or a dangling link is refused before anything else is looked at.
+    let target = OutputTarget::of(path)?;
     let format = match format {
         Some(f) => f,
-        None => Format::from_path(path)?,
+        None => Format::from_path(path).or_else(|e| {
+            // A stream (standard output, a FIFO) without an extension gets the input's format.
+            if target.is_stream() {
+                Ok(like.format)
+            } else {
+                Err(e)
+            }
+        })?,
     };
     if options.noise_flag {
         let refuse = match format {
             Format::Las | Format::Pcd | Format::Ply | Format::Xyz | Format::Pts => None,
             Format::Kitti => Some(
                 "a KITTI .bin record has no room for a noise flag; use --outliers remove or \
+                 another output format",
+            ),
+            Format::Nuscenes | Format::Bin(_) => Some(
+                "a raw .bin record has no room for a noise flag; use --outliers remove or \
                  another output format",
             ),
             Format::Obj | Format::Off => Some("outlier flags apply to point clouds"),
@@ -473,7 +596,9 @@ pub fn create_with(
             count,
             options,
         )?),
-        Format::Kitti => Box::new(kitti::KittiSink::create(path, like, count)?),
+        Format::Kitti | Format::Nuscenes | Format::Bin(_) => {
+            Box::new(raw::RawSink::create_as(path, format, like, count)?)
+        }
         Format::Pcd => Box::new(pcd::PcdSink::create(path, like, count, options)?),
         Format::Las => Box::new(las::LasSink::create(path, like, count, options)?),
     })
@@ -492,122 +617,6 @@ pub(crate) fn foreign_field_type(schema: &Schema, i: usize) -> ScalarType {
     } else {
         ty
     }
-}
-
-/// A buffered file that appears at its target path only when committed.
-///
-/// It writes to a temporary file in the target's directory (so the final rename stays on one file
-/// system) and deletes it when dropped uncommitted: a failed run leaves no half-written output.
-pub struct AtomicFile {
-    target: PathBuf,
-    tmp: BufWriter<tempfile::NamedTempFile>,
-}
-
-impl AtomicFile {
-    /// Starts writing towards `target`.
-    ///
-    /// # Errors
-    /// The target's directory does not exist or is not writable.
-    pub fn create(target: &Path) -> Result<AtomicFile, IoError> {
-        let dir = match target.parent() {
-            Some(d) if !d.as_os_str().is_empty() => d,
-            _ => Path::new("."),
-        };
-        let name = target
-            .file_name()
-            .map(|n| n.to_string_lossy().into_owned())
-            .unwrap_or_default();
-        let tmp = tempfile::Builder::new()
-            .prefix(&format!(".{name}."))
-            .suffix(".tmp")
-            .tempfile_in(dir)
-            .map_err(|e| IoError::io(target, e))?;
-        Ok(AtomicFile {
-            target: target.to_path_buf(),
-            tmp: BufWriter::with_capacity(1 << 20, tmp),
-        })
-    }
-
-    /// The final path.
-    pub fn target(&self) -> &Path {
-        &self.target
-    }
-
-    /// Flushes, syncs to disk and renames onto the target, replacing any file there.
-    ///
-    /// # Errors
-    /// Flush or rename failures.
-    pub fn commit(self) -> Result<(), IoError> {
-        self.finish(true)
-    }
-
-    /// Like [`AtomicFile::commit`] without the sync: the file still appears only complete to
-    /// every reader and survives the process being killed, but not a power loss. For scratch
-    /// files (tile results), where a sync per tile would dominate the run.
-    ///
-    /// # Errors
-    /// Flush or rename failures.
-    pub fn commit_unsynced(self) -> Result<(), IoError> {
-        self.finish(false)
-    }
-
-    fn finish(self, sync: bool) -> Result<(), IoError> {
-        let target = self.target;
-        let tmp = self
-            .tmp
-            .into_inner()
-            .map_err(|e| IoError::io(&target, e.into_error()))?;
-        if sync {
-            tmp.as_file()
-                .sync_data()
-                .map_err(|e| IoError::io(&target, e))?;
-        }
-        fix_permissions(tmp.as_file(), &target).map_err(|e| IoError::io(&target, e))?;
-        tmp.persist(&target)
-            .map_err(|e| IoError::io(&target, e.error))?;
-        Ok(())
-    }
-
-    /// Wraps an OS error with the target path.
-    pub fn err(&self, e: std::io::Error) -> IoError {
-        IoError::io(&self.target, e)
-    }
-}
-
-/// Seeking flushes the buffer first; backends that patch a header after the data (LAS) use it.
-impl Seek for AtomicFile {
-    fn seek(&mut self, pos: SeekFrom) -> std::io::Result<u64> {
-        self.tmp.seek(pos)
-    }
-}
-
-impl Write for AtomicFile {
-    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
-        self.tmp.write(buf)
-    }
-    fn write_all(&mut self, buf: &[u8]) -> std::io::Result<()> {
-        self.tmp.write_all(buf)
-    }
-    fn flush(&mut self) -> std::io::Result<()> {
-        self.tmp.flush()
-    }
-}
-
-/// The temporary file is created owner-only; give the result the permissions of the file it
-/// replaces, or the usual rw-r--r-- of a new file.
-#[cfg(unix)]
-fn fix_permissions(file: &File, target: &Path) -> std::io::Result<()> {
-    use std::os::unix::fs::PermissionsExt;
-    let perms = std::fs::metadata(target)
-        .map(|m| m.permissions())
-        .unwrap_or_else(|_| std::fs::Permissions::from_mode(0o644));
-    file.set_permissions(perms)
-}
-
-/// Elsewhere a fresh temporary file already has ordinary permissions.
-#[cfg(not(unix))]
-fn fix_permissions(_file: &File, _target: &Path) -> std::io::Result<()> {
-    Ok(())
 }
 
 /// Points per batch for whole-file reads and writes.
@@ -763,27 +772,5 @@ mod tests {
             Err(IoError::UnknownFormat { .. })
         ));
         assert!(Format::from_path(Path::new("noext")).is_err());
-    }
-
-    #[test]
-    fn atomic_file_leaves_nothing_when_dropped() {
-        let dir = tempfile::tempdir().unwrap();
-        let target = dir.path().join("out.ply");
-        {
-            let mut f = AtomicFile::create(&target).unwrap();
-            f.write_all(b"partial").unwrap();
-        }
-        assert!(!target.exists());
-        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0);
-        let mut f = AtomicFile::create(&target).unwrap();
-        f.write_all(b"whole").unwrap();
-        f.commit().unwrap();
-        assert_eq!(std::fs::read(&target).unwrap(), b"whole");
-        #[cfg(unix)]
-        {
-            use std::os::unix::fs::PermissionsExt;
-            let mode = std::fs::metadata(&target).unwrap().permissions().mode();
-            assert_eq!(mode & 0o777, 0o644, "readable by others like any new file");
-        }
     }
 }

@@ -440,6 +440,94 @@ impl Sink for ObjSink {
     }
 }
 
+/// The `vn` normals of an OBJ file: their values in file order, and for every face corner (in
+/// the order of [`Extras::faces`]) the `vn` it references, if any.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct ObjNormals {
+    /// One value per `vn` line.
+    pub normals: Vec<DVec3>,
+    /// Per face corner, the 0-based `vn` index (`v//vn`, `v/vt/vn`), or `None`.
+    pub corners: Vec<Option<usize>>,
+}
+
+/// Lines of `text`, each with its terminator.
+fn lines_of(text: &[u8]) -> impl Iterator<Item = &[u8]> {
+    text.split_inclusive(|&b| b == b'\n')
+}
+
+/// The keyword of an OBJ line and its remaining tokens.
+fn keyword_of(line: &[u8]) -> (&[u8], impl Iterator<Item = &[u8]>) {
+    let (content, _) = split_eol(line);
+    let mut toks = tokens(strip_comment(content));
+    let kw = toks.next().unwrap_or_default();
+    (kw, toks)
+}
+
+/// Reads the `vn` lines and the corners' `vn` references of an OBJ file (its header and runs,
+/// in file order). Malformed `vn` values read as NaN.
+pub fn obj_normals(meta: &ObjMeta, trailer: &ObjTrailer) -> ObjNormals {
+    let mut out = ObjNormals::default();
+    let texts = std::iter::once(meta.header.as_slice())
+        .chain(trailer.runs.iter().map(|r| r.text.as_slice()));
+    for text in texts {
+        for line in lines_of(text) {
+            let (kw, toks) = keyword_of(line);
+            match kw {
+                b"vn" => {
+                    let v: Vec<f64> = toks
+                        .take(3)
+                        .map(|t| parse_f64(t).unwrap_or(f64::NAN))
+                        .collect();
+                    let g = |i: usize| v.get(i).copied().unwrap_or(f64::NAN);
+                    out.normals.push(DVec3::new(g(0), g(1), g(2)));
+                }
+                b"f" => {
+                    for tok in toks {
+                        let vn = tok
+                            .split(|&c| c == b'/')
+                            .nth(2)
+                            .and_then(|t| std::str::from_utf8(t).ok())
+                            .and_then(|t| t.parse::<i64>().ok())
+                            .and_then(|i| {
+                                let n = out.normals.len() as i64;
+                                let k = if i < 0 { n + i } else { i - 1 };
+                                usize::try_from(k).ok()
+                            });
+                        out.corners.push(vn);
+                    }
+                }
+                _ => {}
+            }
+        }
+    }
+    out
+}
+
+/// Replaces the values of the `vn` lines (header and runs, in file order) by `normals`, one per
+/// line; every other byte stays.
+pub fn set_obj_normals(meta: &mut ObjMeta, trailer: &mut ObjTrailer, normals: &[DVec3]) {
+    let mut next = normals.iter();
+    let mut rewrite = |text: &mut Vec<u8>| {
+        let mut out = Vec::with_capacity(text.len());
+        for line in lines_of(text) {
+            let (kw, _) = keyword_of(line);
+            match (kw == b"vn").then(|| next.next()).flatten() {
+                Some(n) => {
+                    let (_, eol) = split_eol(line);
+                    out.extend_from_slice(format!("vn {} {} {}", n.x, n.y, n.z).as_bytes());
+                    out.extend_from_slice(eol);
+                }
+                None => out.extend_from_slice(line),
+            }
+        }
+        *text = out;
+    };
+    rewrite(&mut meta.header);
+    for r in &mut trailer.runs {
+        rewrite(&mut r.text);
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

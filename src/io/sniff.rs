@@ -34,6 +34,15 @@ pub fn sniff(head: &[u8]) -> Option<&'static str> {
         let compressed = head.get(LAS_FORMAT_OFFSET).is_some_and(|f| f & 0xC0 != 0);
         return Some(if compressed { "laz" } else { "las" });
     }
+    // A binary PCD body follows its text header: judge the header by its first line.
+    let first_line = head.split(|&b| b == b'\n').next().unwrap_or_default();
+    if let Ok(line) = std::str::from_utf8(first_line) {
+        let line = line.trim();
+        let keyword = line.split_whitespace().next().unwrap_or_default();
+        if line.starts_with("# .PCD") || ["VERSION", "FIELDS"].contains(&keyword) {
+            return Some("pcd");
+        }
+    }
     // Everything else is text: judge complete lines only (the last one may be cut off).
     let text = match head.iter().rposition(|&b| b == b'\n') {
         Some(end) if head.len() == SNIFF_LEN => &head[..end],
@@ -108,9 +117,27 @@ pub fn sniff(head: &[u8]) -> Option<&'static str> {
     None
 }
 
+/// [`sniff`] as a [`Format`](super::Format) (LAS and LAZ are both [`Format::Las`](super::Format::Las)).
+pub fn sniff_format(head: &[u8]) -> Option<super::Format> {
+    sniff(head).and_then(super::Format::from_name)
+}
+
 #[cfg(test)]
 mod tests {
-    use super::sniff;
+    use super::{sniff, sniff_format};
+    use crate::io::Format;
+
+    #[test]
+    fn formats_as_the_enum() {
+        assert_eq!(sniff_format(b"ply\nformat ascii 1.0\n"), Some(Format::Ply));
+        assert_eq!(sniff_format(b"0 0 0\n1 0 0\n0 1 0\n"), Some(Format::Xyz));
+        assert_eq!(sniff_format(b"hello\n"), None);
+        // Issue 12: a binary PCD body after the header.
+        let mut pcd = b"# .PCD v0.7\nVERSION 0.7\nFIELDS x y z\nDATA binary\n".to_vec();
+        pcd.extend_from_slice(&[0xff, 0xfe, 0x80, 0x81]);
+        pcd.resize(super::SNIFF_LEN, 0x9f);
+        assert_eq!(sniff_format(&pcd), Some(Format::Pcd));
+    }
 
     #[test]
     fn formats_by_content() {

@@ -150,6 +150,7 @@ pub fn canonical_format(name: &str) -> Option<String> {
     let f = Format::from_name(&lower)?;
     Some(match f {
         Format::Kitti => "bin".to_string(),
+        Format::Nuscenes => "pcd.bin".to_string(),
         _ => lower,
     })
 }
@@ -275,7 +276,12 @@ fn validate_params(params: &Params, alpha: f64) -> Result<(), JobsError> {
 /// Refuses output options a sink would refuse later (noise flags in KITTI, OBJ, OFF).
 fn validate_output(outliers: OutlierMode, output: &str) -> Result<(), JobsError> {
     let f = format_of(output)?;
-    if outliers == OutlierMode::Classify && matches!(f, Format::Kitti | Format::Obj | Format::Off) {
+    if outliers == OutlierMode::Classify
+        && matches!(
+            f,
+            Format::Kitti | Format::Nuscenes | Format::Bin(_) | Format::Obj | Format::Off
+        )
+    {
         return Err(JobsError::Invalid {
             field: "outliers".into(),
             detail: format!(

@@ -12,8 +12,12 @@
 //!   neighbourhoods, so they write the same bytes.
 //!
 //! The output is created *like* the input (same schema, property types, header, order) and
-//! appears atomically; the input is only ever opened for reading, and an output path naming the
-//! input is refused. Points of a point cloud that fail [`crate::points::in_range`] (a NaN or
+//! appears atomically (a stream — standard output, a device, a FIFO — is written directly; see
+//! [`crate::io::output`]); the input is only ever opened for reading, and an output path naming
+//! the input is refused. An input that is a stream (`-`, `/dev/stdin` from a pipe, a FIFO) is
+//! first spooled to the temporary directory ([`crate::io::input`]), since the passes below read
+//! it more than once. Stored normals are recomputed (meshes) or cleared (clouds), never written
+//! stale (`normals`). Points of a point cloud that fail [`crate::points::in_range`] (a NaN or
 //! infinite coordinate, or one beyond ±10¹², i.e. a corrupt record) are dropped and counted as
 //! they are read (organized PCD clouds keep them, unprocessed and unchanged). Outliers are
 //! flagged (keeping their input position) or removed as [`OutlierMode`] says.
@@ -25,8 +29,10 @@
 //! [`Report`] records what happened: counts, tiles, halo growths, bytes spilled, per-phase wall and
 //! CPU time, peak RSS.
 
+mod normals;
 mod progress;
 
+pub use normals::NormalsAction;
 pub use progress::{BarProgress, LogProgress, NoProgress, Progress};
 
 use std::path::{Path, PathBuf};
@@ -43,7 +49,7 @@ use crate::denoise::{self, DenoiseError, Method, Params, PhaseTiming, Stats, Tim
 use crate::geometry::ExactSum;
 use crate::io::{self, BATCH, Cloud, Extras, Format, IoError, SinkOptions, Source, SourceInfo};
 use crate::neighbours::{NeighboursError, with_cancel};
-use crate::points::{FLAG_NOISE, PointBatch, in_range};
+use crate::points::{FLAG_NOISE, PointBatch, Schema, in_range};
 use crate::tiling::occupancy::Occupancy;
 use crate::tiling::plan::{Plan, Planner, SAMPLE};
 use crate::tiling::spill::{ResultMerge, SpillWriter, TileResult};
@@ -100,6 +106,26 @@ pub enum PipelineError {
         /// What failed.
         detail: String,
     },
+}
+
+impl PipelineError {
+    /// The same error naming the stream `input` where it named its spool.
+    fn with_input(self, input: &io::InputFile) -> PipelineError {
+        let (from, to) = (input.path(), input.shown());
+        let swap = |p: PathBuf| if p == from { to.to_path_buf() } else { p };
+        match self {
+            PipelineError::Io(e) => PipelineError::Io(input.explain(e)),
+            PipelineError::Denoise { path, error } => PipelineError::Denoise {
+                path: swap(path),
+                error,
+            },
+            PipelineError::Tiling { path, error } => PipelineError::Tiling {
+                path: swap(path),
+                error,
+            },
+            other => other,
+        }
+    }
 }
 
 /// What to do with statistical outliers: points whose mean distance to their k-NN list is above
@@ -243,6 +269,9 @@ pub struct Report {
     pub threads: usize,
     /// Peak resident set size of the process in bytes (0 where unknown).
     pub peak_rss_bytes: u64,
+    /// What happened to normals stored in the input: recomputed (meshes) or cleared (clouds).
+    #[serde(default)]
+    pub normals: NormalsAction,
 }
 
 impl Report {
@@ -319,11 +348,36 @@ pub fn run(job: &Job, opts: &RunOptions) -> Result<Report, PipelineError> {
             detail: format!("must be finite and ≥ 0, got {}", job.outlier_alpha),
         }));
     }
+    if let Some(t) = &opts.temp_dir
+        && !t.is_dir()
+    {
+        return Err(PipelineError::TempDir {
+            path: t.clone(),
+            detail: "does not exist or is not a directory".into(),
+        });
+    }
     if same_file(&job.input, &job.output) {
         return Err(PipelineError::SameFile {
             path: job.output.clone(),
         });
     }
+    // A stream (standard input, a pipe, a FIFO) is read more than once below: spool it first.
+    let input = io::InputFile::open(&job.input, job.input_format, opts.temp_dir.as_deref())?;
+    if input.is_spooled() {
+        let spooled = Job {
+            input: input.path().to_path_buf(),
+            input_format: input.format(),
+            ..job.clone()
+        };
+        let mut report = run_file(&spooled, opts).map_err(|e| e.with_input(&input))?;
+        report.input = job.input.clone();
+        return Ok(report);
+    }
+    run_file(job, opts)
+}
+
+/// [`run`] on an input that is a file.
+fn run_file(job: &Job, opts: &RunOptions) -> Result<Report, PipelineError> {
     let wall = Instant::now();
     let cpu = ProcessTime::now();
     let source = io::open(&job.input, job.input_format)?;
@@ -377,6 +431,7 @@ fn empty_report(job: &Job, mode: &str) -> Report {
         cpu_s: 0.0,
         threads: rayon::current_num_threads(),
         peak_rss_bytes: 0,
+        normals: NormalsAction::None,
     }
 }
 
@@ -393,6 +448,7 @@ fn run_mesh(job: &Job) -> Result<Report, PipelineError> {
         ..Stats::default()
     });
     cloud.positions = out.positions;
+    let normals = normals::recompute_mesh(&mut cloud);
     timer = Timer::start();
     cloud.write(&job.output, job.output_format)?;
     timer.lap("write", &mut phases);
@@ -400,6 +456,7 @@ fn run_mesh(job: &Job) -> Result<Report, PipelineError> {
     r.points_in = cloud.len() as u64;
     r.points_out = cloud.len() as u64;
     r.faces = cloud.faces().map_or(0, |f| f.len() as u64);
+    r.normals = normals;
     r.stats = stats;
     r.phases = phases.phases;
     Ok(r)
@@ -416,9 +473,38 @@ struct Assembler {
     keep_non_finite: bool,
     mode: OutlierMode,
     threshold: f64,
+    /// Stored normal fields to clear (they would be stale).
+    normals: Option<(Schema, [usize; 3])>,
 }
 
 impl Assembler {
+    fn new(info: &SourceInfo, mode: OutlierMode, threshold: f64) -> Assembler {
+        Assembler {
+            keep_non_finite: keeps_non_finite(info),
+            mode,
+            threshold,
+            normals: normals::normal_fields(&info.schema).map(|f| (info.schema.clone(), f)),
+        }
+    }
+
+    /// What the output does with stored normals.
+    fn normals_action(&self) -> NormalsAction {
+        if self.normals.is_some() {
+            NormalsAction::Cleared
+        } else {
+            NormalsAction::None
+        }
+    }
+
+    /// Appends a point to `out`, its stored normals cleared.
+    fn put(&self, out: &mut PointBatch, p: DVec3, record: &[u8]) {
+        out.push(p, record);
+        if let Some((schema, f)) = &self.normals {
+            let end = out.records.len();
+            normals::clear_points(schema, *f, &mut out.records[end - schema.record_len..end]);
+        }
+    }
+
     /// Appends input point `i` of `batch` to `out` given its result (None for non-finite points);
     /// returns whether it was flagged or removed as an outlier.
     fn push(
@@ -442,11 +528,11 @@ impl Assembler {
             if self.keep_non_finite {
                 // An organized cloud keeps its image layout: a removed point becomes a NaN
                 // placeholder, as its invalid points are.
-                out.push(DVec3::NAN, batch.record(i));
+                self.put(out, DVec3::NAN, batch.record(i));
             }
             return true;
         }
-        out.push(p, batch.record(i));
+        self.put(out, p, batch.record(i));
         if self.mode == OutlierMode::Classify {
             out.flags.push(if outlier { FLAG_NOISE } else { 0 });
         }
@@ -454,9 +540,10 @@ impl Assembler {
     }
 }
 
-fn sink_options(job: &Job) -> SinkOptions {
+fn sink_options(job: &Job, opts: &RunOptions) -> SinkOptions {
     SinkOptions {
         noise_flag: job.outliers == OutlierMode::Classify,
+        temp_dir: opts.temp_dir.clone(),
     }
 }
 
@@ -551,11 +638,11 @@ fn run_points_in_memory(job: &Job, opts: &RunOptions) -> Result<Report, Pipeline
         result.knn_mean.iter().copied().collect(),
         result.knn_mean.iter().map(|m| m * m).collect(),
     );
-    let asm = Assembler {
-        keep_non_finite: keeps_non_finite(&cloud.info),
-        mode: job.outliers,
-        threshold: threshold(&sum, &sq, job.outlier_alpha),
-    };
+    let asm = Assembler::new(
+        &cloud.info,
+        job.outliers,
+        threshold(&sum, &sq, job.outlier_alpha),
+    );
     let mut by_index: Vec<Option<(DVec3, f64)>> = vec![None; cloud.len()];
     for (j, &i) in finite.iter().enumerate() {
         by_index[i] = Some((result.positions[j], result.knn_mean[j]));
@@ -578,13 +665,14 @@ fn run_points_in_memory(job: &Job, opts: &RunOptions) -> Result<Report, Pipeline
         job.output_format,
         &cloud.info,
         out.len() as u64,
-        &sink_options(job),
+        &sink_options(job, opts),
     )?;
     write_chunked(sink.as_mut(), &out)?;
     sink.finish(&cloud.extras)?;
     timer.lap("write", &mut phases);
 
     let mut r = empty_report(job, "points");
+    r.normals = asm.normals_action();
     r.points_in = cloud.len() as u64;
     r.points_out = out.len() as u64;
     r.dropped_non_finite = if asm.keep_non_finite {
@@ -650,13 +738,52 @@ impl Scratch {
     }
 }
 
-/// The scratch directory, checked to exist, be writable and have room for `need` bytes.
-fn scratch(opts: &RunOptions, need: u64) -> Result<Scratch, PipelineError> {
-    let base = opts
-        .work_dir
+/// Disk bytes per point a tiled run needs in its scratch directory: one spill record per point
+/// plus halo copies (counted as half as many again) and one result record.
+pub const TILED_DISK_PER_POINT: u64 =
+    (tiling::spill::SPILL_RECORD as u64 * 3).div_ceil(2) + tiling::spill::RESULT_RECORD as u64;
+
+/// Where the tiled path's scratch directory goes.
+fn scratch_base(opts: &RunOptions) -> PathBuf {
+    opts.work_dir
         .clone()
         .or_else(|| opts.temp_dir.clone())
-        .unwrap_or_else(std::env::temp_dir);
+        .unwrap_or_else(std::env::temp_dir)
+}
+
+/// Refuses a tiled run of `points` points before any work when the scratch file system has
+/// clearly too little room ([`TILED_DISK_PER_POINT`] per point).
+fn check_disk(opts: &RunOptions, points: u64) -> Result<(), PipelineError> {
+    let mut base = scratch_base(opts);
+    // A job directory may not exist yet: measure the nearest existing ancestor.
+    while !base.exists() {
+        match base.parent() {
+            Some(p) if !p.as_os_str().is_empty() => base = p.to_path_buf(),
+            _ => return Ok(()),
+        }
+    }
+    let need = points.saturating_mul(TILED_DISK_PER_POINT);
+    let free = fs4::available_space(&base).map_err(|e| PipelineError::TempDir {
+        path: base.clone(),
+        detail: e.to_string(),
+    })?;
+    if free < need {
+        return Err(PipelineError::TempDir {
+            path: base,
+            detail: format!(
+                "{:.2} GiB free, a tiled run of {points} points needs about {:.2} GiB \
+                 ({TILED_DISK_PER_POINT} bytes per point); free space or give --temp-dir",
+                free as f64 / (1u64 << 30) as f64,
+                need as f64 / (1u64 << 30) as f64
+            ),
+        });
+    }
+    Ok(())
+}
+
+/// The scratch directory, checked to exist, be writable and have room for `need` bytes.
+fn scratch(opts: &RunOptions, need: u64) -> Result<Scratch, PipelineError> {
+    let base = scratch_base(opts);
     let bad = |detail: String| PipelineError::TempDir {
         path: base.clone(),
         detail,
@@ -773,6 +900,10 @@ fn run_tiled(
     let mut phases = Stats::default();
     let mut timer = Timer::start();
 
+    // The disk the run needs, from the header's count, before the first pass.
+    if let Some(n) = info.len {
+        check_disk(opts, n)?;
+    }
     // Pass 1: plan.
     opts.progress.phase("plan", info.len.unwrap_or(0));
     let mut planner = Planner::new(SAMPLE);
@@ -824,8 +955,7 @@ fn run_tiled(
     timer.lap("plan", &mut phases);
 
     // Pass 2: partition.
-    let need = plan.finite * (tiling::spill::SPILL_RECORD as u64 * 3 / 2)
-        + plan.finite * tiling::spill::RESULT_RECORD as u64;
+    let need = plan.finite * TILED_DISK_PER_POINT;
     let dir = scratch(opts, need)?;
     // A persistent directory holding the same plan and a finished partition is reused: only
     // tiles without a checkpoint are processed again.
@@ -961,11 +1091,7 @@ fn run_tiled(
     let kernel = std::mem::take(&mut stats.phases);
 
     // Pass 4: stitch.
-    let asm = Assembler {
-        keep_non_finite: keeps_non_finite(info),
-        mode: job.outliers,
-        threshold: threshold(&sum, &sq, job.outlier_alpha),
-    };
+    let asm = Assembler::new(info, job.outliers, threshold(&sum, &sq, job.outlier_alpha));
     let removed = if job.outliers == OutlierMode::Remove {
         let mut merge = ResultMerge::open(dir.path(), plan.tiles.len()).map_err(tiling_err)?;
         let mut n = 0u64;
@@ -988,7 +1114,7 @@ fn run_tiled(
         job.output_format,
         info,
         count,
-        &sink_options(job),
+        &sink_options(job, opts),
     )?;
     let mut merge = ResultMerge::open(dir.path(), plan.tiles.len()).map_err(tiling_err)?;
     let mut next: Option<TileResult> = merge.next_result().map_err(tiling_err)?;
@@ -1017,6 +1143,7 @@ fn run_tiled(
     drop(dir);
 
     let mut r = empty_report(job, "tiled");
+    r.normals = asm.normals_action();
     r.points_in = plan.points;
     r.points_out = written;
     r.dropped_non_finite = dropped;
@@ -1034,4 +1161,29 @@ fn run_tiled(
     }));
     r.phases = all;
     Ok(r)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn issue12_tiled_disk_is_checked_up_front() {
+        let dir = tempfile::tempdir().unwrap();
+        let opts = RunOptions {
+            temp_dir: Some(dir.path().to_path_buf()),
+            ..RunOptions::default()
+        };
+        assert_eq!(TILED_DISK_PER_POINT, 88);
+        check_disk(&opts, 1000).unwrap();
+        // 10^15 points need 88 PB: clearly more than any test machine has.
+        let e = check_disk(&opts, 1_000_000_000_000_000)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains(&dir.path().display().to_string()) && e.contains("needs about"),
+            "{e}"
+        );
+        assert_eq!(e.lines().count(), 1);
+    }
 }

@@ -253,7 +253,7 @@ impl LasSink {
             _ => 0,
         };
 
-        let mut file = AtomicFile::create(path)?;
+        let mut file = AtomicFile::create_seekable(path, options.temp_dir.as_deref())?;
         file.write_all(&header).map_err(|e| file.err(e))?;
         file.write_all(&vlr_block).map_err(|e| file.err(e))?;
         let out = match laz {

@@ -574,7 +574,16 @@ mod tests {
         assert_eq!(std::fs::read(&q).unwrap(), las_1_0());
 
         // The noise flag keeps the synthetic bit of a PDRF 0 record.
-        let mut sink = LasSink::create(&q, &c.info, 2, &SinkOptions { noise_flag: true }).unwrap();
+        let mut sink = LasSink::create(
+            &q,
+            &c.info,
+            2,
+            &SinkOptions {
+                noise_flag: true,
+                ..SinkOptions::default()
+            },
+        )
+        .unwrap();
         let mut batch = PointBatch::with_capacity(20, 2);
         batch.positions.extend_from_slice(&c.positions);
         batch.records.extend_from_slice(&c.records);
