@@ -30,6 +30,7 @@
 //!   the columns (`//X Y Z …`, `# x y z …`) gets the name `noise`.
 //! * **KITTI**: refused, a `.bin` record has no room for it (drop outliers, or pick another
 //!   format).
+//! * **E57**: an extension attribute `qemd:noise`, integer 0 or 1.
 //! * **OBJ, OFF**: refused, outlier flags apply to point clouds.
 //!
 //! In PLY, PCD and text output a field, property or column already named [`NOISE_FIELD`] (a file
@@ -51,6 +52,7 @@
 //!
 //! One backend per format lives in its own module; this module only dispatches.
 
+pub mod e57;
 pub mod kitti;
 pub mod las;
 pub mod obj;
@@ -184,9 +186,11 @@ pub enum Format {
     Pcd,
     /// ASPRS LAS (`.las`), LAZ (`.laz`, compressed) and COPC (`.copc.laz`, read as LAZ).
     Las,
+    /// ASTM E57 (`.e57`): terrestrial scans, Cartesian or spherical, several per file.
+    E57,
 }
 
-const KNOWN: &str = ".ply, .obj, .off, .xyz, .txt, .pts, .bin, .pcd, .las, .laz";
+const KNOWN: &str = ".ply, .obj, .off, .xyz, .txt, .pts, .bin, .pcd, .las, .laz, .e57";
 
 impl Format {
     /// Tells the format from a file extension (case-insensitive).
@@ -207,7 +211,7 @@ impl Format {
     }
 
     /// Parses a format name or extension (`ply`, `obj`, `off`, `xyz`, `txt`, `pts`, `bin`,
-    /// `kitti`, `pcd`, `las`, `laz`).
+    /// `kitti`, `pcd`, `las`, `laz`, `e57`).
     pub fn from_name(name: &str) -> Option<Format> {
         match name.to_ascii_lowercase().as_str() {
             "ply" => Some(Format::Ply),
@@ -218,6 +222,7 @@ impl Format {
             "bin" | "kitti" => Some(Format::Kitti),
             "pcd" => Some(Format::Pcd),
             "las" | "laz" => Some(Format::Las),
+            "e57" => Some(Format::E57),
             _ => None,
         }
     }
@@ -233,6 +238,7 @@ impl Format {
             Format::Kitti => "bin",
             Format::Pcd => "pcd",
             Format::Las => "las",
+            Format::E57 => "e57",
         }
     }
 }
@@ -256,6 +262,8 @@ pub enum Meta {
     Pcd(pcd::PcdMeta),
     /// LAS public header and VLRs.
     Las(las::LasMeta),
+    /// E57 scans (descriptors, poses, prototypes) and extensions.
+    E57(e57::E57Meta),
 }
 
 /// What a source says about its file before any point is read.
@@ -395,6 +403,7 @@ pub fn open(path: &Path, format: Option<Format>) -> Result<Box<dyn Source>, IoEr
         Format::Kitti => Box::new(kitti::KittiSource::open(path)?),
         Format::Pcd => Box::new(pcd::PcdSource::open(path)?),
         Format::Las => Box::new(las::LasSource::open(path)?),
+        Format::E57 => Box::new(e57::E57Source::open(path)?),
     })
 }
 
@@ -441,7 +450,9 @@ pub fn create_with(
     };
     if options.noise_flag {
         let refuse = match format {
-            Format::Las | Format::Pcd | Format::Ply | Format::Xyz | Format::Pts => None,
+            Format::Las | Format::Pcd | Format::Ply | Format::Xyz | Format::Pts | Format::E57 => {
+                None
+            }
             Format::Kitti => Some(
                 "a KITTI .bin record has no room for a noise flag; use --outliers remove or \
                  another output format",
@@ -454,6 +465,14 @@ pub fn create_with(
                 detail: detail.to_string(),
             });
         }
+    }
+    if format == Format::Las && las::is_copc_path(path) {
+        return Err(IoError::Unsupported {
+            path: path.to_path_buf(),
+            detail: "COPC output is not written yet (it would be plain LAZ under a COPC name); \
+                     write `.laz` instead"
+                .to_string(),
+        });
     }
     Ok(match format {
         Format::Ply => Box::new(ply::PlySink::create_with(path, like, count, options)?),
@@ -476,6 +495,7 @@ pub fn create_with(
         Format::Kitti => Box::new(kitti::KittiSink::create(path, like, count)?),
         Format::Pcd => Box::new(pcd::PcdSink::create(path, like, count, options)?),
         Format::Las => Box::new(las::LasSink::create(path, like, count, options)?),
+        Format::E57 => Box::new(e57::E57Sink::create(path, like, count, options)?),
     })
 }
 
@@ -531,6 +551,17 @@ impl AtomicFile {
     /// The final path.
     pub fn target(&self) -> &Path {
         &self.target
+    }
+
+    /// A second handle on the temporary file, for writers that need to read back what they wrote
+    /// (E57 updates its page checksums). Write through one handle only: the buffer of this one
+    /// is flushed first, and nothing should be written through it afterwards.
+    ///
+    /// # Errors
+    /// Flush or duplication failures.
+    pub fn try_clone_file(&mut self) -> std::io::Result<File> {
+        self.tmp.flush()?;
+        self.tmp.get_ref().as_file().try_clone()
     }
 
     /// Flushes, syncs to disk and renames onto the target, replacing any file there.
@@ -763,6 +794,18 @@ mod tests {
             Err(IoError::UnknownFormat { .. })
         ));
         assert!(Format::from_path(Path::new("noext")).is_err());
+    }
+
+    #[test]
+    fn issue12_copc_output_is_refused_not_written_as_plain_laz() {
+        let dir = tempfile::tempdir().unwrap();
+        let cloud = Cloud::generated(vec![DVec3::ZERO, DVec3::ONE], None, ScalarType::F64);
+        let target = dir.path().join("out.COPC.laz");
+        let err = cloud.write(&target, None).unwrap_err();
+        assert!(matches!(err, IoError::Unsupported { .. }), "{err}");
+        assert!(err.to_string().contains("COPC"), "{err}");
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0);
+        cloud.write(&dir.path().join("out.laz"), None).unwrap();
     }
 
     #[test]
