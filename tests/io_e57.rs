@@ -17,7 +17,9 @@ const PI: f64 = std::f64::consts::PI;
 
 /// A deterministic pseudo-random sequence in [0, 1).
 fn rng(seed: u64) -> impl FnMut() -> f64 {
-    let mut s = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+    let mut s = seed
+        .wrapping_mul(6364136223846793005)
+        .wrapping_add(1442695040888963407);
     move || {
         s = s
             .wrapping_mul(6364136223846793005)
@@ -139,7 +141,11 @@ fn two_scans(path: &Path, n: usize) -> Expected {
                 ((r() * 4.0) / scale).round() as i64,
             ];
             let i = r() as f32;
-            let c = [(r() * 255.0) as i64, (r() * 255.0) as i64, (r() * 255.0) as i64];
+            let c = [
+                (r() * 255.0) as i64,
+                (r() * 255.0) as i64,
+                (r() * 255.0) as i64,
+            ];
             let local = DVec3::new(l[0] as f64, l[1] as f64, l[2] as f64) * scale;
             exp.world.push(q0 * local + t0);
             exp.intensity.push(f64::from(i));
@@ -243,7 +249,11 @@ fn check_against(c: &Cloud, exp: &Expected) {
             exp.intensity[i]
         );
         if let Some(rgb) = exp.rgb[i] {
-            let got = [field(c, "red", i), field(c, "green", i), field(c, "blue", i)];
+            let got = [
+                field(c, "red", i),
+                field(c, "green", i),
+                field(c, "blue", i),
+            ];
             assert_eq!(got, rgb, "colour {i}");
         }
     }
@@ -256,7 +266,13 @@ fn issue12_e57_two_scans_read_with_poses_spherical_and_attributes() {
     let exp = two_scans(&p, 500);
     let c = Cloud::read(&p, None).unwrap();
     assert_eq!(c.info.format, Format::E57);
-    let names: Vec<_> = c.info.schema.fields.iter().map(|f| f.name.as_str()).collect();
+    let names: Vec<_> = c
+        .info
+        .schema
+        .fields
+        .iter()
+        .map(|f| f.name.as_str())
+        .collect();
     assert_eq!(
         names,
         ["x", "y", "z", "intensity", "red", "green", "blue", "scan"]
@@ -347,7 +363,13 @@ fn issue12_e57_from_other_formats_keeps_every_field() {
     c.write(&e, None).unwrap();
     let d = Cloud::read(&e, None).unwrap();
     assert_eq!(d.positions, c.positions);
-    let names: Vec<_> = d.info.schema.fields.iter().map(|f| f.name.as_str()).collect();
+    let names: Vec<_> = d
+        .info
+        .schema
+        .fields
+        .iter()
+        .map(|f| f.name.as_str())
+        .collect();
     assert_eq!(
         names,
         [
@@ -499,7 +521,11 @@ fn issue12_e57_written_by_pye57_reads_denoises_and_reads_back_in_pye57() {
         );
         assert!((field(&c, "intensity", i) - v[3]).abs() < 1e-6);
         assert_eq!(
-            [field(&c, "red", i), field(&c, "green", i), field(&c, "blue", i)],
+            [
+                field(&c, "red", i),
+                field(&c, "green", i),
+                field(&c, "blue", i)
+            ],
             [v[4], v[5], v[6]]
         );
         n += 1;
@@ -509,7 +535,12 @@ fn issue12_e57_written_by_pye57_reads_denoises_and_reads_back_in_pye57() {
     // Denoise it end to end through the CLI; pye57 reads the result.
     let out = dir.path().join("clean.e57");
     let run = Command::new(env!("CARGO_BIN_EXE_qemd"))
-        .args(["denoise", e57.to_str().unwrap(), "-o", out.to_str().unwrap()])
+        .args([
+            "denoise",
+            e57.to_str().unwrap(),
+            "-o",
+            out.to_str().unwrap(),
+        ])
         .output()
         .unwrap();
     assert!(

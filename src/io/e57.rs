@@ -67,7 +67,9 @@ use e57::{
 use glam::{DQuat, DVec3};
 
 use super::text::{Tally, check_batch};
-use super::{AtomicFile, BATCH, Extras, Format, IoError, Meta, Sink, SinkOptions, Source, SourceInfo};
+use super::{
+    AtomicFile, BATCH, Extras, Format, IoError, Meta, Sink, SinkOptions, Source, SourceInfo,
+};
 use crate::points::{Endian, FLAG_NOISE, Field, PointBatch, ScalarType, Schema};
 
 /// The signature an E57 file starts with.
@@ -274,9 +276,10 @@ impl ScanLayout {
         let state = |i: Option<usize>| -> Result<i64, e57::Error> {
             i.map_or(Ok(0), |i| v[i].to_i64(&proto[i].data_type))
         };
-        let local = if let Some([x, y, z]) = self.cartesian.filter(|_| {
-            state(self.cartesian_state).is_ok_and(|s| s == 0)
-        }) {
+        let local = if let Some([x, y, z]) = self
+            .cartesian
+            .filter(|_| state(self.cartesian_state).is_ok_and(|s| s == 0))
+        {
             DVec3::new(get(x)?, get(y)?, get(z)?)
         } else if let Some([r, a, e]) = self
             .spherical
@@ -432,7 +435,10 @@ fn decode(
         if read != pc.records {
             return Err(IoError::truncated(
                 path,
-                format!("E57 scan {k} declares {} points, its data holds {read}", pc.records),
+                format!(
+                    "E57 scan {k} declares {} points, its data holds {read}",
+                    pc.records
+                ),
             ));
         }
         if !positions.is_empty() && tx.send(Ok((positions, records))).is_err() {
@@ -462,10 +468,7 @@ impl Source for E57Source {
                     Err(_) => {
                         return Err(IoError::truncated(
                             &self.info.path,
-                            format!(
-                                "the E57 points end after {} of {}",
-                                self.read, self.total
-                            ),
+                            format!("the E57 points end after {} of {}", self.read, self.total),
                         ));
                     }
                 }
@@ -571,7 +574,13 @@ fn record_for(f: &Field) -> Record {
 fn xml_name(name: &str) -> String {
     let mut s: String = name
         .chars()
-        .map(|c| if c.is_ascii_alphanumeric() || c == '_' { c } else { '_' })
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || c == '_' {
+                c
+            } else {
+                '_'
+            }
+        })
         .collect();
     if !s.starts_with(|c: char| c.is_ascii_alphabetic() || c == '_') {
         s.insert(0, '_');

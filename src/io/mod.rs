@@ -13,7 +13,8 @@
 //! * [`Cloud`] is the in-memory convenience built on the two: read everything, write everything.
 //!
 //! Sinks take positions from `batch.positions` and every other byte of a record from
-//! `batch.records`; they never reorder points. Sources deliver non-finite positions as they are
+//! `batch.records`; they never reorder points, except the COPC sink (`*.copc.laz`), whose format
+//! stores points node by node in an octree. Sources deliver non-finite positions as they are
 //! (the caller decides whether to drop them).
 //!
 //! # Noise flag
@@ -184,7 +185,8 @@ pub enum Format {
     Kitti,
     /// Point Cloud Library PCD (ascii, binary, binary_compressed).
     Pcd,
-    /// ASPRS LAS (`.las`), LAZ (`.laz`, compressed) and COPC (`.copc.laz`, read as LAZ).
+    /// ASPRS LAS (`.las`), LAZ (`.laz`, compressed) and COPC (`.copc.laz`, read as LAZ, written
+    /// as COPC 1.0).
     Las,
     /// ASTM E57 (`.e57`): terrestrial scans, Cartesian or spherical, several per file.
     E57,
@@ -466,14 +468,6 @@ pub fn create_with(
             });
         }
     }
-    if format == Format::Las && las::is_copc_path(path) {
-        return Err(IoError::Unsupported {
-            path: path.to_path_buf(),
-            detail: "COPC output is not written yet (it would be plain LAZ under a COPC name); \
-                     write `.laz` instead"
-                .to_string(),
-        });
-    }
     Ok(match format {
         Format::Ply => Box::new(ply::PlySink::create_with(path, like, count, options)?),
         Format::Obj => Box::new(obj::ObjSink::create(path, like, count)?),
@@ -494,6 +488,9 @@ pub fn create_with(
         )?),
         Format::Kitti => Box::new(kitti::KittiSink::create(path, like, count)?),
         Format::Pcd => Box::new(pcd::PcdSink::create(path, like, count, options)?),
+        Format::Las if las::is_copc_path(path) => {
+            Box::new(las::CopcSink::create(path, like, count, options)?)
+        }
         Format::Las => Box::new(las::LasSink::create(path, like, count, options)?),
         Format::E57 => Box::new(e57::E57Sink::create(path, like, count, options)?),
     })
@@ -794,18 +791,6 @@ mod tests {
             Err(IoError::UnknownFormat { .. })
         ));
         assert!(Format::from_path(Path::new("noext")).is_err());
-    }
-
-    #[test]
-    fn issue12_copc_output_is_refused_not_written_as_plain_laz() {
-        let dir = tempfile::tempdir().unwrap();
-        let cloud = Cloud::generated(vec![DVec3::ZERO, DVec3::ONE], None, ScalarType::F64);
-        let target = dir.path().join("out.COPC.laz");
-        let err = cloud.write(&target, None).unwrap_err();
-        assert!(matches!(err, IoError::Unsupported { .. }), "{err}");
-        assert!(err.to_string().contains("COPC"), "{err}");
-        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0);
-        cloud.write(&dir.path().join("out.laz"), None).unwrap();
     }
 
     #[test]
