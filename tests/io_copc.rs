@@ -372,6 +372,24 @@ fn issue12_copc_from_other_formats_and_empty_clouds() {
     got.sort();
     assert_eq!(got, want);
 
+    // A sink dropped before finish leaves nothing behind (no output, no scratch folder).
+    {
+        let dropped = dir.path().join("dropped.copc.laz");
+        let mut sink = qem_denoise::io::create(&dropped, None, &c.info, c.len() as u64).unwrap();
+        let mut batch = qem_denoise::points::PointBatch::with_capacity(c.info.schema.record_len, 8);
+        batch.positions.extend_from_slice(&c.positions[..8]);
+        batch
+            .records
+            .extend_from_slice(&c.records[..8 * c.info.schema.record_len]);
+        sink.write_batch(&batch).unwrap();
+    }
+    let left: Vec<_> = std::fs::read_dir(dir.path())
+        .unwrap()
+        .map(|e| e.unwrap().file_name().into_string().unwrap())
+        .filter(|n| n.contains("dropped"))
+        .collect();
+    assert!(left.is_empty(), "left behind: {left:?}");
+
     // No points: a valid, empty COPC file.
     let empty = Cloud::generated(Vec::new(), None, ScalarType::F64);
     let e = dir.path().join("empty.copc.laz");

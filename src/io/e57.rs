@@ -42,8 +42,9 @@
 //!   from the (denoised) position. Coordinates are always written as doubles: a moved point no
 //!   longer sits on the source's scaled-integer grid. The invalid state of the written
 //!   coordinates is recomputed (0, or 2 for a non-finite position); a scan without one stores a
-//!   non-finite position as NaN doubles. New GUIDs are written; each scan lists its
-//!   source GUID among its original GUIDs. Images and blobs are not copied.
+//!   non-finite position as NaN doubles. The file's and the scans' GUIDs are derived from
+//!   a SHA-256 of everything written (the same output gets the same GUIDs, so output stays
+//!   deterministic); each scan lists its source GUID among its original GUIDs. Images and blobs are not copied.
 //! * **From another format** the output is one Cartesian scan (identity pose): `intensity`,
 //!   `red`/`green`/`blue` (all three), `row`, `column`, `return_index`, `return_count` and `time`
 //!   become the E57 attributes of those names, with the field's type (integer types keep their
@@ -512,7 +513,6 @@ enum Value {
 
 /// What the writer thread writes for one scan.
 struct ScanPlan {
-    guid: String,
     /// Descriptor of the source scan (metadata, pose), if any.
     source: Option<PointCloud>,
     prototype: Vec<Record>,
@@ -542,9 +542,26 @@ pub struct E57Sink {
     failed: bool,
 }
 
-/// A new GUID in the braced form E57 writers use.
-fn new_guid() -> String {
-    format!("{{{}}}", uuid::Uuid::new_v4())
+/// The placeholder GUID of scan `k` (`None`: the file's), replaced in the XML by [`guid_from`].
+fn placeholder(k: Option<usize>) -> String {
+    match k {
+        Some(k) => format!("{{qemd-scan-guid-{k}}}"),
+        None => "{qemd-file-guid}".to_string(),
+    }
+}
+
+/// A GUID (braced, UUID form) derived from the digest of everything written and a label: the same
+/// output gives the same GUID (output stays deterministic), different outputs different ones.
+fn guid_from(digest: &[u8], label: &str) -> String {
+    use sha2::Digest;
+    let mut h = sha2::Sha256::new();
+    h.update(digest);
+    h.update(label.as_bytes());
+    let bytes: [u8; 16] = h.finalize()[..16].try_into().expect("16 bytes");
+    format!(
+        "{{{}}}",
+        uuid::Builder::from_random_bytes(bytes).into_uuid()
+    )
 }
 
 /// An E57 record for field `f` of a non-E57 schema, by name and type.
@@ -750,7 +767,6 @@ impl E57Sink {
         }
         let (rotation, translation) = pose(pc.transform.as_ref());
         ScanPlan {
-            guid: new_guid(),
             source: Some(pc.clone()),
             prototype,
             values,
@@ -831,7 +847,6 @@ impl E57Sink {
             Self::add_noise(&mut prototype, &mut values);
         }
         ScanPlan {
-            guid: new_guid(),
             source: None,
             prototype,
             values,
@@ -895,7 +910,9 @@ fn encode(
     rx: &Receiver<Msg>,
 ) -> Result<(), IoError> {
     let err = |e| e57_error(path, e);
-    let mut w = E57Writer::new(file, &new_guid()).map_err(err)?;
+    use sha2::Digest;
+    let mut digest = sha2::Sha256::new();
+    let mut w = E57Writer::new(file, &placeholder(None)).map_err(err)?;
     w.set_coordinate_metadata(coordinate_metadata);
     for e in extensions {
         w.register_extension(e.clone()).map_err(err)?;
@@ -903,7 +920,7 @@ fn encode(
     let mut next = rx.recv().ok();
     for (k, plan) in plans.iter().enumerate() {
         let mut pc = w
-            .add_pointcloud(&plan.guid, plan.prototype.clone())
+            .add_pointcloud(&placeholder(Some(k)), plan.prototype.clone())
             .map_err(err)?;
         if let Some(s) = &plan.source {
             pc.set_name(s.name.clone());
@@ -939,6 +956,10 @@ fn encode(
                 break;
             }
             let rl = schema.record_len;
+            digest.update(k.to_le_bytes());
+            digest.update(bytemuck::cast_slice::<DVec3, u8>(positions));
+            digest.update(records);
+            digest.update(flags);
             for (i, p) in positions.iter().enumerate() {
                 let rec = &records[i * rl..(i + 1) * rl];
                 let local = inverse * (*p - plan.translation);
@@ -976,7 +997,19 @@ fn encode(
             "points of an E57 scan came after those of a later scan",
         ));
     }
-    w.finalize().map_err(err)?;
+    let digest = digest.finalize();
+    let scans = plans.len();
+    w.finalize_customized_xml(|xml| {
+        let mut xml = xml.replace(&placeholder(None), &guid_from(&digest, "file"));
+        for k in 0..scans {
+            xml = xml.replace(
+                &placeholder(Some(k)),
+                &guid_from(&digest, &format!("scan {k}")),
+            );
+        }
+        Ok(xml)
+    })
+    .map_err(err)?;
     Ok(())
 }
 
