@@ -508,6 +508,13 @@ with open(sys.argv[2], "w") as f:
         f.write("%r %r %r %r %d %d %d\n" % (float(u[i]), float(v[i]), float(z[i]), float(data["intensity"][i]), int(data["colorRed"][i]), int(data["colorGreen"][i]), int(data["colorBlue"][i])))
 "#;
 
+const PYE57_WORLD: &str = r#"
+import sys, pye57
+d = pye57.E57(sys.argv[1]).read_scan(0, ignore_missing_fields=True, transform=True)
+for i in range(50):
+    print(repr(float(d["cartesianX"][i])), repr(float(d["cartesianY"][i])), repr(float(d["cartesianZ"][i])))
+"#;
+
 const PYE57_READ: &str = r#"
 import sys, pye57
 e = pye57.E57(sys.argv[1])
@@ -555,6 +562,15 @@ fn issue12_e57_written_by_pye57_reads_denoises_and_reads_back_in_pye57() {
         n += 1;
     }
     assert_eq!((n, c.len()), (20_000, 20_000));
+    // pye57's own pose application (libE57Format's convention) agrees with ours.
+    let world = python(PYE57_WORLD, &[&e57]);
+    for (i, line) in world.lines().enumerate() {
+        let v: Vec<f64> = line
+            .split_whitespace()
+            .map(|x| x.parse().unwrap())
+            .collect();
+        assert_within(c.positions[i], DVec3::new(v[0], v[1], v[2]), 1e-6, "pye57 pose");
+    }
 
     // Denoise it end to end through the CLI; pye57 reads the result.
     let out = dir.path().join("clean.e57");
