@@ -569,7 +569,12 @@ fn issue12_e57_written_by_pye57_reads_denoises_and_reads_back_in_pye57() {
             .split_whitespace()
             .map(|x| x.parse().unwrap())
             .collect();
-        assert_within(c.positions[i], DVec3::new(v[0], v[1], v[2]), 1e-6, "pye57 pose");
+        assert_within(
+            c.positions[i],
+            DVec3::new(v[0], v[1], v[2]),
+            1e-6,
+            "pye57 pose",
+        );
     }
 
     // Denoise it end to end through the CLI; pye57 reads the result.

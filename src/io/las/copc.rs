@@ -149,8 +149,7 @@ impl Sink for CopcSink {
         inner.finish(extras).map_err(|e| retarget(e, &target))?;
         let mut out = self.out.take().expect("finish runs once");
         write_copc(&self.points, &mut out).map_err(|e| retarget(e, &target))?;
-        let _ = &self.scratch;
-        out.commit()
+        out.commit() // the scratch folder goes with `self`
     }
 }
 
@@ -162,6 +161,12 @@ struct Convert {
     extra: usize,
     /// Length of a converted record.
     len: usize,
+    /// Offset of the GPS time in a source record.
+    gps: Option<usize>,
+    /// Offsets of RGB in a source and a COPC record.
+    rgb: Option<(usize, usize)>,
+    /// Offsets of NIR in a source and a COPC record.
+    nir: Option<(usize, usize)>,
 }
 
 /// The COPC point format of LAS point format `f`.
@@ -194,11 +199,15 @@ impl Convert {
         let to = copc_format(from);
         let extra = record_len - BASE_LEN[usize::from(from)];
         let wave = if wave_at(from).is_some() { 29 } else { 0 };
+        let both = |n: &str| field_at(from, n).zip(field_at(to, n));
         Convert {
             from,
             to,
             extra,
             len: BASE_LEN[usize::from(to)] + wave + extra,
+            gps: field_at(from, "gps_time"),
+            rgb: both("red"),
+            nir: both("nir"),
         }
     }
 
@@ -229,14 +238,14 @@ impl Convert {
             let rank = f64::from(src[16] as i8);
             put(dst, 18, &((rank / 0.006).round() as i16).to_le_bytes());
             dst[20..22].copy_from_slice(&src[18..20]);
-            if let Some(g) = field_at(from, "gps_time") {
+            if let Some(g) = self.gps {
                 dst[22..30].copy_from_slice(&src[g..g + 8]);
             }
         }
-        if let (Some(s), Some(d)) = (field_at(from, "red"), field_at(to, "red")) {
+        if let Some((s, d)) = self.rgb {
             dst[d..d + 6].copy_from_slice(&src[s..s + 6]);
         }
-        if let (Some(s), Some(d)) = (field_at(from, "nir"), field_at(to, "nir")) {
+        if let Some((s, d)) = self.nir {
             dst[d..d + 2].copy_from_slice(&src[s..s + 2]);
         }
         let mut o = BASE_LEN[usize::from(to)];
@@ -497,7 +506,7 @@ fn write_copc(points: &Path, out: &mut AtomicFile) -> Result<(), IoError> {
                     qmin[a] = qmin[a].min(xyz[i][a]);
                     qmax[a] = qmax[a].max(xyz[i][a]);
                 }
-                if let Some(g) = field_at(conv.from, "gps_time") {
+                if let Some(g) = conv.gps {
                     let t = get_f64(r, g);
                     tmin = tmin.min(t);
                     tmax = tmax.max(t);
@@ -535,17 +544,14 @@ fn write_copc(points: &Path, out: &mut AtomicFile) -> Result<(), IoError> {
     out.write_all(&hierarchy).map_err(io)?;
     let root_offset = pos + layout::EVLR_HEADER as u64;
     let mut evlrs = 1u32;
-    pos += hierarchy.len() as u64;
     for piece in &trailer.pieces {
         if let Piece::Evlr(v) = piece
             && v.user_id() != "copc"
         {
             out.write_all(v.bytes()).map_err(io)?;
-            pos += v.bytes().len() as u64;
             evlrs += 1;
         }
     }
-    let _ = pos;
 
     // Patch the header, the info VLR and the chunk table offset.
     put(&mut h, at::WAVEFORM, &0u64.to_le_bytes());
