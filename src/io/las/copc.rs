@@ -69,15 +69,17 @@ const INFO_LEN: usize = 160;
 /// Bytes of one hierarchy entry.
 const ENTRY_LEN: usize = 32;
 
+/// Name of the scratch LAS file in the scratch folder.
+const SCRATCH_NAME: &str = "points.las";
+
 /// Nodes compressed in parallel before they are written.
 const NODE_GROUP: usize = 64;
 
 /// Streaming COPC writer: a [`LasSink`] into a scratch file, turned into COPC at [`Sink::finish`].
 pub struct CopcSink {
     inner: Option<Box<LasSink>>,
-    /// Removed when the sink is dropped.
+    /// Holds the scratch LAS file ([`SCRATCH_NAME`]); removed when the sink is dropped.
     scratch: tempfile::TempDir,
-    points: PathBuf,
     out: Option<AtomicFile>,
     target: PathBuf,
 }
@@ -119,13 +121,12 @@ impl CopcSink {
             .prefix(&format!(".{name}."))
             .tempdir_in(dir)
             .map_err(|e| IoError::io(path, e))?;
-        let points = scratch.path().join("points.las");
+        let points = scratch.path().join(SCRATCH_NAME);
         let inner =
             LasSink::create(&points, like, count, options).map_err(|e| retarget(e, path))?;
         Ok(CopcSink {
             inner: Some(Box::new(inner)),
             scratch,
-            points,
             out: Some(out),
             target: path.to_path_buf(),
         })
@@ -148,7 +149,8 @@ impl Sink for CopcSink {
             .ok_or_else(|| IoError::invalid(&target, "the sink is finished"))?;
         inner.finish(extras).map_err(|e| retarget(e, &target))?;
         let mut out = self.out.take().expect("finish runs once");
-        write_copc(&self.points, &mut out).map_err(|e| retarget(e, &target))?;
+        let points = self.scratch.path().join(SCRATCH_NAME);
+        write_copc(&points, &mut out).map_err(|e| retarget(e, &target))?;
         out.commit() // the scratch folder goes with `self`
     }
 }
