@@ -16,7 +16,8 @@
 //! * [`Cloud`] is the in-memory convenience built on the two: read everything, write everything.
 //!
 //! Sinks take positions from `batch.positions` and every other byte of a record from
-//! `batch.records`; they never reorder points. Sources deliver non-finite positions as they are
+//! `batch.records`; they never reorder points, except the COPC sink (`*.copc.laz`), whose format
+//! stores points node by node in an octree. Sources deliver non-finite positions as they are
 //! (the caller decides whether to drop them).
 //!
 //! # Noise flag
@@ -33,6 +34,7 @@
 //!   the columns (`//X Y Z …`, `# x y z …`) gets the name `noise`.
 //! * **KITTI**: refused, a `.bin` record has no room for it (drop outliers, or pick another
 //!   format).
+//! * **E57**: an extension attribute `qemd:noise`, integer 0 or 1.
 //! * **OBJ, OFF**: refused, outlier flags apply to point clouds.
 //!
 //! In PLY, PCD and text output a field, property or column already named [`NOISE_FIELD`] (a file
@@ -54,6 +56,7 @@
 //!
 //! One backend per format lives in its own module; this module only dispatches.
 
+pub mod e57;
 pub mod input;
 pub mod las;
 pub mod obj;
@@ -224,11 +227,14 @@ pub enum Format {
     Bin(raw::BinLayout),
     /// Point Cloud Library PCD (ascii, binary, binary_compressed).
     Pcd,
-    /// ASPRS LAS (`.las`), LAZ (`.laz`, compressed) and COPC (`.copc.laz`, read as LAZ).
+    /// ASPRS LAS (`.las`), LAZ (`.laz`, compressed) and COPC (`.copc.laz`, read as LAZ, written
+    /// as COPC 1.0).
     Las,
+    /// ASTM E57 (`.e57`): terrestrial scans, Cartesian or spherical, several per file.
+    E57,
 }
 
-const KNOWN: &str = ".ply, .obj, .off, .xyz, .txt, .pts, .bin, .pcd.bin, .pcd, .las, .laz";
+const KNOWN: &str = ".ply, .obj, .off, .xyz, .txt, .pts, .bin, .pcd.bin, .pcd, .las, .laz, .e57";
 
 impl Format {
     /// Tells the format from a file extension (case-insensitive).
@@ -256,7 +262,7 @@ impl Format {
     }
 
     /// Parses a format name or extension (`ply`, `obj`, `off`, `xyz`, `txt`, `pts`, `bin`,
-    /// `kitti`, `nuscenes`, `pcd`, `las`, `laz`; see [`Format::NAMES`]).
+    /// `kitti`, `nuscenes`, `pcd`, `las`, `laz`, `e57`; see [`Format::NAMES`]).
     pub fn from_name(name: &str) -> Option<Format> {
         match name.to_ascii_lowercase().as_str() {
             "ply" => Some(Format::Ply),
@@ -268,6 +274,7 @@ impl Format {
             "nuscenes" | "pcd.bin" => Some(Format::Nuscenes),
             "pcd" => Some(Format::Pcd),
             "las" | "laz" => Some(Format::Las),
+            "e57" => Some(Format::E57),
             _ => None,
         }
     }
@@ -285,12 +292,14 @@ impl Format {
             Format::Bin(_) => "bin",
             Format::Pcd => "pcd",
             Format::Las => "las",
+            Format::E57 => "e57",
         }
     }
 
     /// The names [`Format::from_name`] accepts, for help texts.
     pub const NAMES: &'static [&'static str] = &[
         "ply", "obj", "off", "xyz", "txt", "pts", "pcd", "las", "laz", "kitti", "bin", "nuscenes",
+        "e57",
     ];
 
     /// The record layout of a raw `f32` format (KITTI, nuScenes, [`Format::Bin`]).
@@ -323,6 +332,8 @@ pub enum Meta {
     Pcd(pcd::PcdMeta),
     /// LAS public header and VLRs.
     Las(las::LasMeta),
+    /// E57 scans (descriptors, poses, prototypes) and extensions.
+    E57(e57::E57Meta),
 }
 
 /// What a source says about its file before any point is read.
@@ -467,6 +478,7 @@ pub fn open(path: &Path, format: Option<Format>) -> Result<Box<dyn Source>, IoEr
         }
         Format::Pcd => Box::new(pcd::PcdSource::open(path)?),
         Format::Las => Box::new(las::LasSource::open(path)?),
+        Format::E57 => Box::new(e57::E57Source::open(path)?),
     })
 }
 
@@ -560,7 +572,9 @@ pub fn create_with(
     };
     if options.noise_flag {
         let refuse = match format {
-            Format::Las | Format::Pcd | Format::Ply | Format::Xyz | Format::Pts => None,
+            Format::Las | Format::Pcd | Format::Ply | Format::Xyz | Format::Pts | Format::E57 => {
+                None
+            }
             Format::Kitti => Some(
                 "a KITTI .bin record has no room for a noise flag; use --outliers remove or \
                  another output format",
@@ -600,7 +614,11 @@ pub fn create_with(
             Box::new(raw::RawSink::create_as(path, format, like, count)?)
         }
         Format::Pcd => Box::new(pcd::PcdSink::create(path, like, count, options)?),
+        Format::Las if las::is_copc_path(path) => {
+            Box::new(las::CopcSink::create(path, like, count, options)?)
+        }
         Format::Las => Box::new(las::LasSink::create(path, like, count, options)?),
+        Format::E57 => Box::new(e57::E57Sink::create(path, like, count, options)?),
     })
 }
 

@@ -186,6 +186,26 @@ impl AtomicFile {
         &self.target
     }
 
+    /// A second handle on the temporary file, for writers that need to read back what they wrote
+    /// (E57 updates its page checksums). Write through one handle only: the buffer of this one
+    /// is flushed first, and nothing should be written through it afterwards. A direct stream has
+    /// no file: create such outputs with [`AtomicFile::create_seekable`].
+    ///
+    /// # Errors
+    /// Flush or duplication failures; a direct stream.
+    pub fn try_clone_file(&mut self) -> std::io::Result<std::fs::File> {
+        match &mut self.dest {
+            Dest::Rename { tmp, .. } | Dest::Spool { tmp, .. } => {
+                tmp.flush()?;
+                tmp.get_ref().as_file().try_clone()
+            }
+            Dest::Direct(_) => Err(std::io::Error::new(
+                std::io::ErrorKind::Unsupported,
+                "the output is a stream and cannot be read back",
+            )),
+        }
+    }
+
     /// True when the output goes to a stream (standard output, a device, a FIFO).
     pub fn is_stream(&self) -> bool {
         !matches!(self.dest, Dest::Rename { .. })

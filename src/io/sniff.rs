@@ -7,6 +7,7 @@
 //! | content | answer |
 //! |---|---|
 //! | `ply` line | `ply` |
+//! | `ASTM-E57` signature | `e57` |
 //! | `LASF` signature, compression bits of the point format clear / set | `las` / `laz` |
 //! | first keyword line of a PCD header (`VERSION`, `FIELDS`, …), or `# .PCD` | `pcd` |
 //! | first token `OFF`, `COFF`, `NOFF`, `CNOFF`, `STOFF` … | `off` |
@@ -24,10 +25,13 @@ pub const SNIFF_LEN: usize = 4096;
 const LAS_FORMAT_OFFSET: usize = 104;
 
 /// Names the format of content starting with `head` by its canonical extension (`ply`, `las`,
-/// `laz`, `pcd`, `off`, `obj`, `pts`, `xyz`), or `None`.
+/// `laz`, `e57`, `pcd`, `off`, `obj`, `pts`, `xyz`), or `None`.
 pub fn sniff(head: &[u8]) -> Option<&'static str> {
     if head.starts_with(b"ply\n") || head.starts_with(b"ply\r\n") {
         return Some("ply");
+    }
+    if head.starts_with(super::e57::SIGNATURE) {
+        return Some("e57");
     }
     if head.starts_with(b"LASF") {
         // Bit 7 (LASzip) or bit 6 (old LASzip) of the point data record format marks LAZ.
@@ -142,6 +146,7 @@ mod tests {
     #[test]
     fn formats_by_content() {
         assert_eq!(sniff(b"ply\nformat ascii 1.0\n"), Some("ply"));
+        assert_eq!(sniff(b"ASTM-E57\0\0\x01\0"), Some("e57"));
         let mut las = b"LASF".to_vec();
         las.resize(227, 0);
         assert_eq!(sniff(&las), Some("las"));

@@ -940,12 +940,12 @@ fn run_tiled(
     let target = opts
         .tile_points
         .unwrap_or_else(|| (opts.memory_budget * 2 / (5 * per_point)).max(10_000));
-    // One tile may run on as many points (owned and halo) as half the budget holds at
-    // `per_point` bytes: the measured peak is about twice the estimate (allocator and transient
-    // copies), and the rest holds the read-ahead tile, the occupancy grid, the sample and I/O
-    // buffers.
+    // One tile may run on as many points (owned and halo) as 60 % of the budget holds at
+    // `per_point` bytes (the rest holds allocator slack and transient copies, the read-ahead
+    // tile, the occupancy grid, the sample and I/O buffers); the tile target is 40 %, so a
+    // uniform cloud's halo fits.
     let allowance = opts.memory_budget / 5 * 4;
-    let max_points = opts.memory_budget / 2 / per_point.max(1);
+    let max_points = opts.memory_budget / 5 * 3 / per_point.max(1);
     let plan = planner.finish_within(
         target,
         max_points,

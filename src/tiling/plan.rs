@@ -272,11 +272,12 @@ impl Planner {
                 halo,
                 isolation,
             };
+            // A tenth of margin: the sample's estimate is not the exact count.
             let load = plan.largest_load(&pts, weight);
-            if load <= max_load as f64 || target <= MIN_TARGET {
+            if load <= 0.9 * max_load as f64 || target <= MIN_TARGET {
                 return plan;
             }
-            let shrunk = (target as f64 * (max_load as f64 / load) * 0.9) as u64;
+            let shrunk = (target as f64 * (0.9 * max_load as f64 / load) * 0.95) as u64;
             target = shrunk.min(target * 9 / 10).max(MIN_TARGET);
         }
     }

@@ -65,12 +65,13 @@
 //! `.las` uncompressed; any other extension follows the source (uncompressed without one).
 //!
 //! **COPC** (`*.copc.laz`) is read as the LAZ file it is: all points in file order (node by node).
-//! Writing it back gives a plain LAZ file, not COPC, since moved points no longer match the octree
-//! and the chunk offsets change: the COPC info VLR (`copc`/1) and the hierarchy EVLR
-//! (`copc`/1000) are dropped and the laszip VLR's variable chunk size becomes fixed
-//! [`LAZ_CHUNK_SIZE`]-point chunks (only its chunk-size field changes). Every other VLR and EVLR,
-//! the `copc`/10000 extents included, is kept verbatim; so is the rest of the header (the VLR
-//! count and offset to the point data follow the dropped VLR).
+//! An output path ending in `.copc.laz` is written as COPC 1.0 by [`CopcSink`] (octree rebuilt
+//! from the written points; see its module). Any other output is plain LAZ or LAS, not COPC,
+//! since moved points no longer match the octree and the chunk offsets change: the COPC info VLR
+//! (`copc`/1) and the hierarchy EVLR (`copc`/1000) are dropped and the laszip VLR's variable chunk
+//! size becomes fixed [`LAZ_CHUNK_SIZE`]-point chunks (only its chunk-size field changes). Every
+//! other VLR and EVLR, the `copc`/10000 extents included, is kept verbatim; so is the rest of the
+//! header (the VLR count and offset to the point data follow the dropped VLR).
 //!
 //! # Writing anything else as LAS
 //!
@@ -106,6 +107,7 @@
 //! [`AtomicFile`]: crate::io::AtomicFile
 //! [`Sink::finish`]: crate::io::Sink::finish
 
+mod copc;
 mod layout;
 mod sink;
 mod source;
@@ -116,6 +118,7 @@ use std::path::Path;
 
 use glam::DVec3;
 
+pub use self::copc::CopcSink;
 pub use self::sink::LasSink;
 pub use self::source::LasSource;
 
@@ -129,6 +132,13 @@ pub const LAZ_CHUNK_SIZE: u32 = 50_000;
 const LASZIP_USER: &str = "laszip encoded";
 /// Record id of the LASzip VLR.
 const LASZIP_RECORD: u16 = 22204;
+
+/// True when `path` names a COPC file (`*.copc.laz`, case-insensitive).
+pub fn is_copc_path(path: &Path) -> bool {
+    path.file_name()
+        .and_then(|n| n.to_str())
+        .is_some_and(|n| n.to_ascii_lowercase().ends_with(".copc.laz"))
+}
 
 /// One VLR (54-byte header) or EVLR (60-byte header), kept as raw bytes.
 #[derive(Debug, Clone, PartialEq, Eq)]
