@@ -437,7 +437,7 @@ impl Jobs {
         &self.inner.settings.data_dir
     }
 
-    fn job_dir(&self, id: &str) -> PathBuf {
+    pub(super) fn job_dir(&self, id: &str) -> PathBuf {
         self.data_dir().join("jobs").join(id)
     }
 
