@@ -297,8 +297,7 @@ function wire() {
   $('reset-params').addEventListener('click', () => form?.reset());
   const drop = $('drop');
   const pick = $('file');
-  drop.addEventListener('click', () => pick.click());
-  drop.addEventListener('keydown', (e) => { if (e.key === 'Enter' || e.key === ' ') { e.preventDefault(); pick.click(); } });
+  $('choose').addEventListener('click', () => pick.click());
   pick.addEventListener('change', () => { for (const f of pick.files) uploadFile(f); pick.value = ''; });
   drop.addEventListener('dragover', (e) => { e.preventDefault(); drop.classList.add('over'); });
   drop.addEventListener('dragleave', () => drop.classList.remove('over'));

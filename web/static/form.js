@@ -9,7 +9,11 @@ function types(prop) { return Array.isArray(prop.type) ? prop.type : [prop.type]
 /** Builds the inputs into `fieldset`; returns { values(), reset(), fields }. */
 export function buildForm(fieldset, schema) {
   const fields = [];
-  for (const [name, prop] of Object.entries(schema.properties)) {
+  // The spec's properties arrive sorted by name; the method and its presets come first.
+  const first = ['method', 'paper', 'iterations', 'rings', 'knn', 'outliers', 'outlier_alpha'];
+  const rank = (n) => (first.includes(n) ? first.indexOf(n) : first.length);
+  const entries = Object.entries(schema.properties).sort(([a], [b]) => rank(a) - rank(b) || a.localeCompare(b));
+  for (const [name, prop] of entries) {
     const t = types(prop);
     const nullable = t.includes('null');
     const label = document.createElement('label');
