@@ -130,7 +130,11 @@ mod tests {
         for i in 0..n {
             let (u, v) = ((i % 60) as f64 * 0.1, (i / 60) as f64 * 0.1);
             let noise = ((i * 7919) % 17) as f64 * 2e-3 - 0.016;
-            for c in [500_000.0 + u, 6_000_000.0 + v, (u * 2.0).sin() * 0.2 + noise] {
+            for c in [
+                500_000.0 + u,
+                6_000_000.0 + v,
+                (u * 2.0).sin() * 0.2 + noise,
+            ] {
                 b.extend_from_slice(&c.to_le_bytes());
             }
             b.extend_from_slice(&((i % 1000) as u16).to_le_bytes());
@@ -140,10 +144,7 @@ mod tests {
 
     /// Vertex records of one of our preview PLYs: header lines and the bytes after it.
     fn parse(ply: &[u8]) -> (Vec<String>, Vec<u8>) {
-        let end = ply
-            .windows(11)
-            .position(|w| w == b"end_header\n")
-            .unwrap();
+        let end = ply.windows(11).position(|w| w == b"end_header\n").unwrap();
         let header = String::from_utf8(ply[..end].to_vec()).unwrap();
         (
             header.lines().map(str::to_string).collect(),
@@ -155,10 +156,7 @@ mod tests {
         f32::from_le_bytes(b[at..at + 4].try_into().unwrap())
     }
 
-    async fn send(
-        app: &axum::Router,
-        req: Request<Body>,
-    ) -> (StatusCode, HeaderMap, Vec<u8>) {
+    async fn send(app: &axum::Router, req: Request<Body>) -> (StatusCode, HeaderMap, Vec<u8>) {
         let r = app.clone().oneshot(req).await.unwrap();
         let (status, headers) = (r.status(), r.headers().clone());
         let body = axum::body::to_bytes(r.into_body(), 1 << 26).await.unwrap();
@@ -195,7 +193,12 @@ mod tests {
                 .unwrap(),
         )
         .await;
-        assert_eq!(status, StatusCode::CREATED, "{}", String::from_utf8_lossy(&body));
+        assert_eq!(
+            status,
+            StatusCode::CREATED,
+            "{}",
+            String::from_utf8_lossy(&body)
+        );
         let up: serde_json::Value = serde_json::from_slice(&body).unwrap();
         let (status, _, body) = send(
             &app,
@@ -254,14 +257,21 @@ mod tests {
         let (_, _, after) = send(&app, get(&format!("{base}/after"), "ta")).await;
         let (hb, rb) = parse(&before);
         let (ha, ra) = parse(&after);
-        assert!(hb.contains(&"property float displacement".to_string()), "{hb:?}");
+        assert!(
+            hb.contains(&"property float displacement".to_string()),
+            "{hb:?}"
+        );
         assert!(ha.contains(&"element vertex 3000".to_string()));
         // x y z displacement intensity: 20 bytes a point; the displacement is the distance.
         assert_eq!(rb.len(), 3000 * 20);
         let mut moved = 0;
         for k in 0..3000 {
             let p = |r: &[u8]| {
-                glam::Vec3::new(f32_at(r, k * 20), f32_at(r, k * 20 + 4), f32_at(r, k * 20 + 8))
+                glam::Vec3::new(
+                    f32_at(r, k * 20),
+                    f32_at(r, k * 20 + 4),
+                    f32_at(r, k * 20 + 8),
+                )
             };
             let d = p(&rb).distance(p(&ra));
             let stated = f32_at(&rb, k * 20 + 12);
@@ -272,22 +282,25 @@ mod tests {
         assert!(moved > 1000, "{moved}");
 
         // Tenancy: bob sees neither the description nor the files.
-        for path in [base.clone(), format!("{base}/before"), format!("{base}/after")] {
+        for path in [
+            base.clone(),
+            format!("{base}/before"),
+            format!("{base}/after"),
+        ] {
             let (status, _, _) = send(&app, get(&path, "tb")).await;
             assert_eq!(status, StatusCode::NOT_FOUND, "{path}");
         }
-        let (status, _, _) = send(
-            &app,
-            Request::get(&base).body(Body::empty()).unwrap(),
-        )
-        .await;
+        let (status, _, _) = send(&app, Request::get(&base).body(Body::empty()).unwrap()).await;
         assert_eq!(status, StatusCode::UNAUTHORIZED);
 
         // A bounded sample keeps the same points on both sides.
         let row = jobs.job("alice", &id).await.unwrap().row;
         let report = row.report.clone().unwrap();
         let res = jobs.result("alice", &id).await.unwrap();
-        let input = dir.path().join("uploads").join(format!("{}.ply", row.upload));
+        let input = dir
+            .path()
+            .join("uploads")
+            .join(format!("{}.ply", row.upload));
         let small = dir.path().join("small");
         let meta = crate::jobs::preview::build(
             &small,
@@ -298,6 +311,23 @@ mod tests {
         )
         .unwrap();
         assert_eq!((meta.points_before, meta.points_after), (500, 500));
+        // Deterministic: built again, the same bytes.
+        let again = dir.path().join("again");
+        crate::jobs::preview::build(
+            &again,
+            (&input, "ply"),
+            (&res.path, &res.format),
+            &report,
+            500,
+        )
+        .unwrap();
+        for f in ["before.ply", "after.ply", "preview.json"] {
+            assert_eq!(
+                std::fs::read(small.join(f)).unwrap(),
+                std::fs::read(again.join(f)).unwrap(),
+                "{f}"
+            );
+        }
         let (_, rb) = parse(&std::fs::read(small.join("before.ply")).unwrap());
         let (_, ra) = parse(&std::fs::read(small.join("after.ply")).unwrap());
         // Before point k is source point chosen[k]: compare with the full preview's.

@@ -49,8 +49,14 @@ static ASSETS: &[Asset] = &[
     asset!("form.js", "text/javascript; charset=utf-8"),
     asset!("viewer.js", "text/javascript; charset=utf-8"),
     asset!("colours.js", "text/javascript; charset=utf-8"),
-    asset!("vendor/three/three.module.js", "text/javascript; charset=utf-8"),
-    asset!("vendor/three/three.core.js", "text/javascript; charset=utf-8"),
+    asset!(
+        "vendor/three/three.module.js",
+        "text/javascript; charset=utf-8"
+    ),
+    asset!(
+        "vendor/three/three.core.js",
+        "text/javascript; charset=utf-8"
+    ),
     asset!(
         "vendor/three/addons/loaders/PLYLoader.js",
         "text/javascript; charset=utf-8"

@@ -6,12 +6,13 @@
 //!
 //! * **Selection.** A job's points are numbered in the order the pipeline keeps them (the
 //!   result's order: input points minus those dropped for a non-finite or out-of-range
-//!   coordinate). A scan of at most [`PREVIEW_POINTS`] kept points is taken whole; a larger one
-//!   keeps the [`PREVIEW_POINTS`] indices whose [`mix`] hash is smallest (a bottom-k sample of
+//!   coordinate). A scan of at most `preview_points` ([`super::Settings::preview_points`],
+//!   default [`PREVIEW_POINTS`]) kept points is taken whole; a larger one keeps the
+//!   `preview_points` indices whose [`mix`] hash is smallest (a bottom-k sample of
 //!   the index hashes, independent of the data, the thread count or the tiling). The same indices
 //!   are read from the input and from the result, so the two halves of the preview are the same
 //!   points, and the same job always gives the same bytes.
-//! * **Meshes** of at most [`PREVIEW_POINTS`] vertices are sent whole with their faces
+//! * **Meshes** of at most `preview_points` vertices are sent whole with their faces
 //!   (polygons fanned into triangles); larger ones are sampled like clouds and drawn as points.
 //! * **Unpaired results.** With `outliers: remove` and outliers found, result point *j* is no
 //!   longer input point *j*; both sides are then sampled on their own (same rule) and the
@@ -26,7 +27,7 @@
 //!   last, and go with the job's directory when it is dismissed.
 //!
 //! Building is synchronous and streaming: the input and the result are read once each in
-//! batches; memory is O([`PREVIEW_POINTS`]) whatever the scan's size. The async entry point,
+//! batches; memory is O(`preview_points`) whatever the scan's size. The async entry point,
 //! [`Jobs::preview`], runs it on the blocking pool, one build at a time.
 
 use std::io::Write;
@@ -41,7 +42,7 @@ use crate::io::{AtomicFile, IoError};
 use crate::pipeline::{OutlierMode, Report};
 use crate::points::{Faces, PointBatch, Schema, in_range};
 
-/// Most points a preview holds (on each side).
+/// Most points a preview holds on each side, by default.
 pub const PREVIEW_POINTS: u64 = 1_000_000;
 
 /// The preview directory's name inside a job's directory (bumped when the layout changes, so a
@@ -139,6 +140,8 @@ pub struct PreviewMeta {
     pub displacement: Option<DisplacementStats>,
     /// The sampling rule, in words.
     pub selection: String,
+    /// The bound it was built with (`preview_points`).
+    pub max_points: u64,
 }
 
 /// A built preview's files.
@@ -274,8 +277,8 @@ fn write_ply(
     label: &str,
 ) -> Result<(), JobsError> {
     let fail = |e: std::io::Error| JobsError::io(format!("write {}", target.display()), e);
-    let mut f = AtomicFile::create(target)
-        .map_err(|e| JobsError::Internal(format!("preview: {e}")))?;
+    let mut f =
+        AtomicFile::create(target).map_err(|e| JobsError::Internal(format!("preview: {e}")))?;
     let mut header = format!(
         "ply\nformat binary_little_endian 1.0\ncomment qemd preview ({label}); positions relative \
          to origin {} {} {}\nelement vertex {}\nproperty float x\nproperty float y\nproperty float z\n",
@@ -476,6 +479,7 @@ pub fn build(
         } else {
             format!("the {cap} point indices with the smallest SplitMix64 hash")
         },
+        max_points: cap,
     };
     let json = serde_json::to_vec_pretty(&meta)
         .map_err(|e| JobsError::Internal(format!("preview: {e}")))?;
@@ -507,13 +511,13 @@ impl Jobs {
             JobsError::Internal(format!("job {id} is successful but has no report"))
         })?;
         let (t, up) = (tenant.to_string(), row.upload.clone());
-        let upload = self
-            .db(move |s| s.upload(Some(&t), &up))
-            .await?
-            .ok_or(JobsError::Conflict {
-                detail: format!("the input of job {id} was deleted; there is no preview"),
-                offset: None,
-            })?;
+        let upload =
+            self.db(move |s| s.upload(Some(&t), &up))
+                .await?
+                .ok_or(JobsError::Conflict {
+                    detail: format!("the input of job {id} was deleted; there is no preview"),
+                    offset: None,
+                })?;
         let in_ext = upload
             .format
             .clone()
@@ -525,25 +529,19 @@ impl Jobs {
             before: dir.join("before.ply"),
             after: dir.join("after.ply"),
         };
-        if let Some(meta) = read_meta(&dir).await {
+        let cap = self.settings().preview_points;
+        if let Some(meta) = read_meta(&dir, cap).await {
             return Ok(files(meta));
         }
         let _one = BUILDING.lock().await;
-        if let Some(meta) = read_meta(&dir).await {
+        if let Some(meta) = read_meta(&dir, cap).await {
             return Ok(files(meta));
         }
         let (d, rp, rf) = (dir.clone(), result.path.clone(), result.format.clone());
         let started = std::time::Instant::now();
-        let meta = bridge::blocking(move || {
-            build(
-                &d,
-                (&in_path, &in_ext),
-                (&rp, &rf),
-                &report,
-                PREVIEW_POINTS,
-            )
-        })
-        .await??;
+        let meta =
+            bridge::blocking(move || build(&d, (&in_path, &in_ext), (&rp, &rf), &report, cap))
+                .await??;
         // A job dismissed while its preview was built has lost its directory: answer as for any
         // dismissed job.
         let again = self.job(tenant, id).await?;
@@ -560,9 +558,13 @@ impl Jobs {
     }
 }
 
-async fn read_meta(dir: &Path) -> Option<PreviewMeta> {
+/// The built preview's description, unless it is missing, unreadable or built with another
+/// bound (then it is built again).
+async fn read_meta(dir: &Path, cap: u64) -> Option<PreviewMeta> {
     let bytes = tokio::fs::read(dir.join("preview.json")).await.ok()?;
-    serde_json::from_slice(&bytes).ok()
+    serde_json::from_slice::<PreviewMeta>(&bytes)
+        .ok()
+        .filter(|m| m.max_points == cap)
 }
 
 #[cfg(test)]

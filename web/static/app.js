@@ -29,6 +29,7 @@ async function signIn(t) {
   $('session').hidden = false;
   $('whoami').textContent = t ? 'Signed in (token kept for this tab only)' : 'Signed in (server without tokens)';
   $('main').hidden = false;
+  $('intro').hidden = true;
   if (!form) await setUpForm();
   renderUploads();
   poll();
@@ -44,6 +45,7 @@ function signOut() {
   $('uploads').textContent = '';
   $('viewer').hidden = true;
   $('main').hidden = true;
+  $('intro').hidden = false;
   $('signin').hidden = false;
   $('session').hidden = true;
   $('token').value = '';
