@@ -343,6 +343,46 @@ mod tests {
             assert!(x_small > 499_999.0);
             assert_eq!(disp_small, f32_at(&ra, k * 20 + 12));
         }
+        // `outliers: remove` drops points: the sides are sampled on their own, unpaired.
+        let (_, _, body) = send(
+            &app,
+            Request::post("/v1/jobs")
+                .header(header::AUTHORIZATION, "Bearer ta")
+                .header(header::CONTENT_TYPE, "application/json")
+                .body(Body::from(
+                    json!({"input": up["id"], "params": {"outliers": "remove", "outlier_alpha": 0.5}})
+                        .to_string(),
+                ))
+                .unwrap(),
+        )
+        .await;
+        let removing = serde_json::from_slice::<serde_json::Value>(&body).unwrap()["id"]
+            .as_str()
+            .unwrap()
+            .to_string();
+        let mut meta = serde_json::Value::Null;
+        for _ in 0..600 {
+            let (status, _, body) =
+                send(&app, get(&format!("/v1/jobs/{removing}/preview"), "ta")).await;
+            if status == StatusCode::OK {
+                meta = serde_json::from_slice(&body).unwrap();
+                break;
+            }
+            assert_eq!(status, StatusCode::CONFLICT);
+            tokio::time::sleep(std::time::Duration::from_millis(50)).await;
+        }
+        assert_eq!(meta["paired"], false, "{meta}");
+        assert_eq!(meta["displacement"], serde_json::Value::Null);
+        assert_eq!(meta["points_before"], 3000);
+        assert!(meta["points_after"].as_u64().unwrap() < 3000, "{meta}");
+        let (_, _, after) = send(
+            &app,
+            get(&format!("/v1/jobs/{removing}/preview/after"), "ta"),
+        )
+        .await;
+        let (ha, _) = parse(&after);
+        assert!(!ha.iter().any(|l| l.contains("displacement")), "{ha:?}");
+
         // Dismissing the job removes its preview.
         let (status, _, _) = send(
             &app,

@@ -25,6 +25,7 @@ const LAS = join(shared, 'lidar/4_6_crop.las');
 const MESH = join(shared, 'meshes/pairs/l0_fandisk_0.3_noisy.obj');
 const shots = process.env.QEMD_WEB_SCREENSHOTS ? resolve(process.env.QEMD_WEB_SCREENSHOTS) : null;
 const TOKENS = { alice: 'alice-secret-token', bob: 'bob-secret-token' };
+const PREVIEW_POINTS = 20000;
 
 let server, base, browser, dataDir;
 const consoleProblems = [];
@@ -33,7 +34,15 @@ const choosers = [];
 
 async function startServer() {
   dataDir = mkdtempSync(join(tmpdir(), 'qemd-web-'));
-  const env = { ...process.env, QEMD_AUTH_TOKENS: `${TOKENS.alice}:alice,${TOKENS.bob}:bob`, QEMD_LOG_LEVEL: 'warn' };
+  // Small tiles, so the LAS job runs tiled (several tiles to watch), and a preview bound below
+  // the LAS file's 23,875 points, so its preview is a sample.
+  const env = {
+    ...process.env,
+    QEMD_AUTH_TOKENS: `${TOKENS.alice}:alice,${TOKENS.bob}:bob`,
+    QEMD_LOG_LEVEL: 'warn',
+    QEMD_JOB_TILE_POINTS: '5000',
+    QEMD_PREVIEW_POINTS: String(PREVIEW_POINTS),
+  };
   server = spawn(bin, ['serve', '--listen', '127.0.0.1:0', '--data-dir', join(dataDir, 'data')], { env, stdio: ['ignore', 'pipe', 'inherit'] });
   base = await new Promise((ok, fail) => {
     let out = '';
@@ -265,6 +274,9 @@ test('run a job on the LAS file: progress reaches 100 %, the viewer shows displa
   state.lasJob = id;
   assert.equal(seen.at(-1), '100 %');
   assert.equal(await row.locator('progress').evaluate((p) => p.value), 100);
+  // Tiled: the tiles column counts them.
+  const tiles = (await row.locator('td').nth(4).textContent()).match(/^(\d+)\/(\d+)$/);
+  assert.ok(tiles && Number(tiles[2]) > 1 && tiles[1] === tiles[2], await row.textContent());
   await shot(page, '4-jobs', '#jobs');
   // Download: the result's bytes, as the API serves them.
   const [dl] = await Promise.all([page.waitForEvent('download'), row.locator('button.download').click()]);
@@ -275,6 +287,10 @@ test('run a job on the LAS file: progress reaches 100 %, the viewer shows displa
   assert.equal(dl.suggestedFilename(), `${id}.las`);
   await openViewer(page, row);
   assert.equal(await page.getAttribute('#viewer', 'data-colour'), 'displacement');
+  // A bounded preview: 20,000 of the 23,875 points, the same on both sides.
+  const meta = await (await fetch(`${base}/v1/jobs/${id}/preview`, { headers: { Authorization: `Bearer ${TOKENS.alice}` } })).json();
+  assert.deepEqual([meta.points_total, meta.points_before, meta.points_after, meta.paired], [23875, PREVIEW_POINTS, PREVIEW_POINTS, true]);
+  assert.match(await page.textContent('#viewer-info'), /20,000 of 23,875 points/);
   assert.match(await page.textContent('#legend-labels'), /displacement: 0 m/);
   const disp = await pixels(page);
   // Both sides draw the scan; the colours are the displacement ramp's: cold points that did not
