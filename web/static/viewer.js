@@ -112,7 +112,8 @@ export class Viewer {
     g.computeBoundingSphere();
     const s = g.boundingSphere;
     for (const c of this.controls) c.target.copy(s.center);
-    const dist = (s.radius / Math.tan((this.camera.fov * Math.PI) / 360)) * 0.85;
+    const fit = Math.min(1, this.camera.aspect || 1);
+    const dist = (s.radius / Math.tan((this.camera.fov * Math.PI) / 360) / fit) * 0.95;
     const dir = this.up === 2 ? new THREE.Vector3(0.0, -0.75, 0.66) : new THREE.Vector3(0.35, 0.25, 1);
     this.camera.position.copy(s.center).addScaledVector(dir.normalize(), dist);
     this.camera.near = Math.max(dist / 1000, s.radius / 1e4);
