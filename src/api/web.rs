@@ -180,6 +180,36 @@ pub fn router() -> Router<AppState> {
 mod tests {
     use super::*;
 
+    /// The page's form shows the defaults of `proto/openapi.yaml`'s `Params`; they must be the
+    /// defaults the code applies.
+    #[test]
+    fn issue13_form_defaults_are_the_code_defaults() {
+        let doc = super::super::openapi_document().unwrap();
+        let props = doc["components"]["schemas"]["Params"]["properties"]
+            .as_object()
+            .unwrap();
+        let mut code = serde_json::to_value(crate::denoise::Params::default()).unwrap();
+        code["outliers"] = serde_json::to_value(crate::pipeline::OutlierMode::default()).unwrap();
+        code["outlier_alpha"] = serde_json::json!(crate::jobs::Settings::default().outlier_alpha);
+        code["paper"] = serde_json::json!(false);
+        let mut checked = 0;
+        for (name, prop) in props {
+            let Some(doc_default) = prop.get("default") else {
+                // Fields without one are unset in the code too (chosen from the data, or `knn`,
+                // whose presence picks point mode); the form leaves them empty.
+                assert!(code[name].is_null(), "{name}: code default {}", code[name]);
+                continue;
+            };
+            let same = match (doc_default.as_f64(), code[name].as_f64()) {
+                (Some(a), Some(b)) => (a - b).abs() < 1e-12,
+                _ => doc_default == &code[name],
+            };
+            assert!(same, "{name}: openapi {doc_default} vs code {}", code[name]);
+            checked += 1;
+        }
+        assert!(checked >= 12, "{checked}");
+    }
+
     #[test]
     fn base64_matches_rfc4648() {
         for (raw, enc) in [
