@@ -167,10 +167,17 @@ function uploadFile(file) {
 
 const fmtEta = (s) => (s == null || !Number.isFinite(s) ? '' : s < 90 ? `${Math.ceil(s)} s` : `${Math.round(s / 60)} min`);
 
-function eta(job) {
+// The ETA extrapolates the percentage's rate over the last 20 s the page watched (the early
+// phases of a tiled run cover more percent per second than its tiles do), else over the run.
+function eta(job, hist) {
   const p = job.progress?.percent;
   const run = job.timings?.run_s;
-  if (job.status !== 'running' || !p || p < 1 || run == null) return null;
+  if (job.status !== 'running' || !p || p < 1 || run == null) { hist.length = 0; return null; }
+  const now = performance.now() / 1000;
+  hist.push([now, p]);
+  while (hist.length > 2 && now - hist[0][0] > 20) hist.shift();
+  const [t0, p0] = hist[0];
+  if (now - t0 >= 3 && p > p0) return ((100 - p) * (now - t0)) / (p - p0);
   return (run * (100 - p)) / p;
 }
 
@@ -204,7 +211,7 @@ function upsertRow(job) {
     const cancel = button('Cancel', () => cancelJob(job.id), 'cancel');
     actions.append(view, dl, cancel);
     $('job-rows').prepend(tr);
-    r = { tr, cells, bar, pct, view, dl, cancel, job };
+    r = { tr, cells, bar, pct, view, dl, cancel, job, hist: [] };
     rows.set(job.id, r);
   }
   r.job = job;
@@ -220,7 +227,7 @@ function upsertRow(job) {
   const percent = p?.percent ?? (job.status === 'successful' ? 100 : 0);
   r.bar.value = percent;
   r.pct.textContent = `${percent >= 100 ? 100 : percent.toFixed(1)} %`;
-  r.cells[6].textContent = fmtEta(eta(job));
+  r.cells[6].textContent = fmtEta(eta(job, r.hist));
   const done = job.status === 'successful';
   r.view.disabled = !done;
   r.dl.disabled = !done;

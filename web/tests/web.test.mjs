@@ -23,6 +23,7 @@ const bin = process.env.QEMD_BIN || [join(repo, 'target/release/qemd'), join(rep
 const shared = process.env.QEMD_SHARED || resolve(repo, '..', 'shared', 'data');
 const LAS = join(shared, 'lidar/4_6_crop.las');
 const MESH = join(shared, 'meshes/pairs/l0_fandisk_0.3_noisy.obj');
+const COPC = join(shared, 'lidar/lone-star.copc.laz');
 const shots = process.env.QEMD_WEB_SCREENSHOTS ? resolve(process.env.QEMD_WEB_SCREENSHOTS) : null;
 const TOKENS = { alice: 'alice-secret-token', bob: 'bob-secret-token' };
 const PREVIEW_POINTS = 20000;
@@ -165,7 +166,7 @@ async function openViewer(page, row) {
 
 before(async () => {
   assert.ok(bin && existsSync(bin), 'build qemd first (cargo build --release) or set QEMD_BIN');
-  assert.ok(existsSync(LAS) && existsSync(MESH), `shared data missing under ${shared}`);
+  assert.ok([LAS, MESH, COPC].every(existsSync), `shared data missing under ${shared}`);
   await startServer();
   browser = await chromium.launch({
     executablePath: '/usr/bin/chromium',
@@ -344,6 +345,39 @@ test('a mesh: shaded before and after differ; flat and smooth shading; toggle la
   await shot(page, '9-viewer-toggle', '#viewer');
   await page.selectOption('#layout', 'side');
   await page.selectOption('#shading', 'smooth');
+});
+
+test('live progress of a long job (phase, tiles, percent, ETA), then Cancel stops it', async () => {
+  const page = state.page;
+  // 518,862 points in tiles of 5,000: minutes of work, watched for a few seconds.
+  const id = await upload(page, COPC);
+  await page.selectOption('#input', id);
+  const known = new Set((await page.locator('#job-rows tr').evaluateAll((trs) => trs.map((t) => t.dataset.job))));
+  await page.click('#submit');
+  await page.waitForFunction((ids) => [...document.querySelectorAll('#job-rows tr')].some((t) => !ids.includes(t.dataset.job)), [...known]);
+  const job = await page.locator('#job-rows tr').evaluateAll((trs, ids) => trs.find((t) => !ids.includes(t.dataset.job)).dataset.job, [...known]);
+  const row = page.locator(`#job-rows tr[data-job="${job}"]`);
+  // Wait until a few tiles are done and the page shows an ETA.
+  await page.waitForFunction((j) => {
+    const tr = document.querySelector(`#job-rows tr[data-job="${j}"]`);
+    const m = tr.cells[4].textContent.match(/^(\d+)\/(\d+)$/);
+    return tr.dataset.status === 'running' && tr.cells[3].textContent === 'tiles' && m && Number(m[1]) >= 8 && tr.cells[6].textContent !== '';
+  }, job, { timeout: 180_000 });
+  const cells = await row.locator('td').allTextContents();
+  const [done, total] = cells[4].split('/').map(Number);
+  assert.ok(done < total, cells.join(' | '));
+  const percent = Number(cells[5].replace(/[^0-9.]/g, ''));
+  assert.ok(percent > 0 && percent < 100, cells.join(' | '));
+  assert.match(cells[6], /^\d+ (s|min)$/);
+  await shot(page, '4b-job-running', '#jobs');
+  assert.equal(await row.locator('button.cancel').textContent(), 'Cancel');
+  const t0 = Date.now();
+  await row.locator('button.cancel').click();
+  await page.waitForFunction((j) => document.querySelector(`#job-rows tr[data-job="${j}"]`).dataset.status === 'dismissed', job);
+  assert.ok(Date.now() - t0 < 5000, `cancel took ${Date.now() - t0} ms`);
+  const r = await fetch(`${base}/v1/jobs/${job}`, { headers: { Authorization: `Bearer ${TOKENS.alice}` } });
+  assert.equal((await r.json()).status, 'dismissed');
+  assert.equal(await row.locator('button.cancel').isHidden(), true);
 });
 
 test('tenancy: another token sees neither the jobs nor the previews', async () => {
