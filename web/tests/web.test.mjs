@@ -242,8 +242,18 @@ test('upload a LAS file and a mesh through tus, with progress', async () => {
   const text = await page.textContent('#uploads');
   assert.match(text, /las, 23,875 points/);
   assert.match(text, /obj, 6,475 vertices/);
+  // Drag and drop: a file dropped on the zone uploads the same way.
+  const bunny = readFileSync(join(shared, 'meshes/bun_zipper_res4.ply'));
+  const dataTransfer = await page.evaluateHandle((bytes) => {
+    const dt = new DataTransfer();
+    dt.items.add(new File([new Uint8Array(bytes)], 'bun_zipper_res4.ply'));
+    return dt;
+  }, [...bunny]);
+  await page.dispatchEvent('#drop', 'drop', { dataTransfer });
+  await page.waitForFunction(() => [...document.querySelectorAll('#uploads li')].some((l) => l.textContent.includes('bun_zipper_res4') && l.dataset.state === 'done'));
+  assert.match(await page.textContent('#uploads'), /ply, 453 vertices/);
   const bars = await page.locator('#uploads progress').evaluateAll((b) => b.map((x) => x.value));
-  assert.deepEqual(bars, [100, 100]);
+  assert.deepEqual(bars, [100, 100, 100]);
   await shot(page, '2-uploads-and-parameters');
 });
 
