@@ -26,6 +26,7 @@ pub const KEYS: &[&str] = &[
     "queue_capacity",
     "job_tile_points",
     "sync_concurrency",
+    "preview_points",
     "log_format",
     "log_level",
 ];
@@ -70,6 +71,8 @@ pub struct Config {
     pub job_tile_points: u64,
     /// `serve`: synchronous requests running at the same time.
     pub sync_concurrency: usize,
+    /// `serve`: most points on each side of a job's before/after preview (the web viewer).
+    pub preview_points: u64,
     /// `serve`: log line format.
     pub log_format: LogFormat,
     /// `serve`: log filter (tracing `EnvFilter` syntax).
@@ -133,6 +136,9 @@ impl Config {
         }
         if !(1..=4096).contains(&self.sync_concurrency) {
             return bad("sync_concurrency", "must be between 1 and 4096");
+        }
+        if !(1000..=20_000_000).contains(&self.preview_points) {
+            return bad("preview_points", "must be between 1000 and 20000000");
         }
         if self.job_tile_points < 1000 {
             return bad("job_tile_points", "must be at least 1000");

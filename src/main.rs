@@ -95,6 +95,7 @@ fn serve(a: ServeArgs) -> Result<()> {
             outlier_alpha: config.outlier_alpha,
             max_upload_size: config.max_upload_size.as_u64(),
             sync_concurrency: config.sync_concurrency,
+            preview_points: config.preview_points,
         },
         api: ApiSettings {
             tokens: config.tokens()?,

@@ -77,7 +77,7 @@ pub fn parse_range(value: &str, size: u64) -> RangeRequest {
 }
 
 /// True when an `If-None-Match` value matches `etag`.
-fn matches_etag(value: &str, etag: &str) -> bool {
+pub(crate) fn matches_etag(value: &str, etag: &str) -> bool {
     value
         .split(',')
         .map(|t| t.trim().trim_start_matches("W/"))

@@ -21,16 +21,20 @@
 //! | `POST`/`GET /v1/jobs`, `GET`/`DELETE /v1/jobs/{id}` | [`jobs`] |
 //! | `GET /v1/jobs/{id}/result` (Range, ETag) | [`download`] |
 //! | `POST /v1/denoise` | [`sync`] |
+//! | `GET /v1/jobs/{id}/preview`, `…/preview/before`, `…/preview/after` | [`preview`] |
 //! | `/healthz`, `/readyz`, `/metrics`, `/openapi.json` | [`ops`] |
+//! | `GET /` (the web page), `GET /web/{file}` (its files) | [`web`] |
 
 pub mod auth;
 pub mod download;
 pub mod error;
 pub mod jobs;
 pub mod ops;
+pub mod preview;
 pub mod server;
 pub mod sync;
 pub mod uploads;
+pub mod web;
 
 use std::sync::Arc;
 
@@ -97,6 +101,7 @@ pub fn openapi_document() -> Result<serde_json::Value, ApiError> {
 /// Every route: path and method router, `/v1` ones flagged for authentication.
 pub fn routes() -> Vec<(&'static str, bool, MethodRouter<AppState>)> {
     vec![
+        ("/", false, get(web::page)),
         ("/healthz", false, get(ops::healthz)),
         ("/readyz", false, get(ops::readyz)),
         ("/metrics", false, get(ops::metrics)),
@@ -120,6 +125,9 @@ pub fn routes() -> Vec<(&'static str, bool, MethodRouter<AppState>)> {
             get(jobs::status).delete(jobs::dismiss),
         ),
         ("/v1/jobs/{id}/result", true, get(download::result)),
+        ("/v1/jobs/{id}/preview", true, get(preview::describe)),
+        ("/v1/jobs/{id}/preview/before", true, get(preview::before)),
+        ("/v1/jobs/{id}/preview/after", true, get(preview::after)),
         ("/v1/denoise", true, post(sync::denoise)),
     ]
 }
@@ -140,6 +148,7 @@ pub fn router(state: AppState) -> Router {
         auth::authenticate,
     ));
     open.merge(v1)
+        .merge(web::router())
         .fallback(|| async { ApiError::NoRoute })
         .method_not_allowed_fallback(|| async { ApiError::MethodNotAllowed })
         .layer(

@@ -24,6 +24,8 @@
 //!   resumes with only its unfinished tiles, writing the same bytes. Point clouds larger than
 //!   [`Settings::job_tile_points`] always run tiled, which bounds how long a cancellation takes
 //!   (the pipeline checks its cancel flag between batches and tiles).
+//! * [`preview`] builds the bounded, deterministic before/after previews the web page draws
+//!   (`data_dir/jobs/<id>/preview-v1/`).
 //! * [`metrics::Metrics`] holds the Prometheus metrics; [`progress::ProgressView`] what a running
 //!   job reports.
 //!
@@ -32,6 +34,7 @@
 
 pub mod bridge;
 pub mod metrics;
+pub mod preview;
 pub mod progress;
 mod service;
 pub mod store;

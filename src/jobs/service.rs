@@ -53,6 +53,8 @@ pub struct Settings {
     pub max_upload_size: u64,
     /// Synchronous requests running at the same time.
     pub sync_concurrency: usize,
+    /// Most points on each side of a job's preview ([`super::preview`]).
+    pub preview_points: u64,
 }
 
 impl Default for Settings {
@@ -66,6 +68,7 @@ impl Default for Settings {
             outlier_alpha: 2.0,
             max_upload_size: 16 << 30,
             sync_concurrency: 8,
+            preview_points: super::preview::PREVIEW_POINTS,
         }
     }
 }
@@ -443,7 +446,7 @@ impl Jobs {
         &self.inner.settings.data_dir
     }
 
-    fn job_dir(&self, id: &str) -> PathBuf {
+    pub(super) fn job_dir(&self, id: &str) -> PathBuf {
         self.data_dir().join("jobs").join(id)
     }
 
