@@ -430,7 +430,10 @@ fn issue12_e57_noise_flag_is_an_extension_attribute() {
         None,
         &c.info,
         c.len() as u64,
-        &io::SinkOptions { noise_flag: true },
+        &io::SinkOptions {
+            noise_flag: true,
+            temp_dir: None,
+        },
     )
     .unwrap();
     let mut batch = qem_denoise::points::PointBatch::with_capacity(c.info.schema.record_len, 100);

@@ -84,7 +84,7 @@ fn issue12_denoise_help_states_every_default() {
     for flag in ["--format", "--input-format"] {
         let text = option_help(&help, flag);
         assert!(
-            text.contains("[possible values: ply, obj, off, xyz, txt, pts, pcd, las, laz, kitti, bin, nuscenes]"),
+            text.contains("[possible values: ply, obj, off, xyz, txt, pts, pcd, las, laz, kitti, bin, nuscenes, e57]"),
             "{flag} lists its values:\n{text}"
         );
     }
