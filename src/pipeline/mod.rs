@@ -990,6 +990,9 @@ fn run_tiled(
     let budget = tiling::TileBudget {
         occupancy: occupancy.as_ref(),
         max_points: Some(max_points),
+        // A grown halo is not refused (see docs/DECISIONS.md, issue 16): it is what the plan
+        // cannot foresee, and refusing it failed real airborne scans at 64–128 MiB.
+        grown_points: None,
         max_staged: Some(allowance / 80),
     };
     // Up front: every tile's first load (its spill file, exactly) fits, or the run says so
@@ -997,7 +1000,7 @@ fn run_tiled(
     for t in 0..plan.tiles.len() {
         let points = tiling::spill::spilled_points(dir.path(), t).map_err(tiling_err)?;
         budget
-            .check_points(t, points, plan.halo)
+            .check_points(t, points, plan.halo, false)
             .map_err(tiling_err)?;
     }
     timer.lap("partition", &mut phases);

@@ -131,6 +131,9 @@ pub struct TileBudget<'a> {
     pub occupancy: Option<&'a Occupancy>,
     /// Most points one tile may run the operator on; `None` for no limit.
     pub max_points: Option<u64>,
+    /// Most points a tile whose halo had to grow may run on (a grown halo is the exception the
+    /// plan cannot foresee; it may take more than the planned share, up to this bound).
+    pub grown_points: Option<u64>,
     /// Most points a halo load may read before they are counted (the grid's upper bound on a
     /// region; each read point costs far less than one the operator runs on).
     pub max_staged: Option<u64>,
@@ -159,10 +162,10 @@ impl TileBudget<'_> {
     }
 
     /// The halo to grow to from `from` toward `to`: `to` when the grid's bound on its load fits
-    /// [`TileBudget::max_points`], else the largest halo between them whose bound fits (found
+    /// [`TileBudget::grown_points`], else the largest halo between them whose bound fits (found
     /// by bisection), else a quarter more than `from` (its exact load is checked once read).
     pub fn fitting_halo(&self, plan: &Plan, t: usize, from: f64, to: f64) -> f64 {
-        let (Some(o), Some(max)) = (self.occupancy, self.max_points) else {
+        let (Some(o), Some(max)) = (self.occupancy, self.grown_points) else {
             return to;
         };
         let fits = |h: f64| o.points_in(&plan.region(t, h)) <= max;
@@ -182,12 +185,23 @@ impl TileBudget<'_> {
         }
     }
 
-    /// [`TilingError::Budget`] when tile `t` loaded more than [`TileBudget::max_points`].
+    /// [`TilingError::Budget`] when tile `t` loaded more than [`TileBudget::max_points`] (or
+    /// [`TileBudget::grown_points`] when its halo `grown`).
     ///
     /// # Errors
     /// As said.
-    pub fn check_points(&self, t: usize, points: u64, halo: f64) -> Result<(), TilingError> {
-        match self.max_points {
+    pub fn check_points(
+        &self,
+        t: usize,
+        points: u64,
+        halo: f64,
+        grown: bool,
+    ) -> Result<(), TilingError> {
+        match if grown {
+            self.grown_points
+        } else {
+            self.max_points
+        } {
             Some(max) if points > max => Err(TilingError::Budget {
                 tile: t,
                 points,
@@ -302,7 +316,7 @@ fn with_exact_halo<T>(
         }
         let few = pts.len() < min_points;
         if !few {
-            budget.check_points(t, pts.len() as u64, halo)?;
+            budget.check_points(t, pts.len() as u64, halo, growths > 0)?;
             let (value, exact) = f(&pts, &run)?;
             if exact {
                 return Ok((value, pts, halo, growths));
