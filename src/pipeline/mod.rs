@@ -986,13 +986,11 @@ fn run_tiled(
         occupancy
     };
     // A halo load may read as many points as the allowance holds at 80 bytes (a read point and
-    // its position and index copies) before they are counted.
+    // its position and index copies) before they are counted. A grown halo is otherwise not
+    // refused (docs/DECISIONS.md, issue 16): refusing it failed real airborne scans at 64–128 MiB.
     let budget = tiling::TileBudget {
         occupancy: occupancy.as_ref(),
         max_points: Some(max_points),
-        // A grown halo is not refused (see docs/DECISIONS.md, issue 16): it is what the plan
-        // cannot foresee, and refusing it failed real airborne scans at 64–128 MiB.
-        grown_points: None,
         max_staged: Some(allowance / 80),
     };
     // Up front: every tile's first load (its spill file, exactly) fits, or the run says so
@@ -1000,7 +998,7 @@ fn run_tiled(
     for t in 0..plan.tiles.len() {
         let points = tiling::spill::spilled_points(dir.path(), t).map_err(tiling_err)?;
         budget
-            .check_points(t, points, plan.halo, false)
+            .check_points(t, points, plan.halo)
             .map_err(tiling_err)?;
     }
     timer.lap("partition", &mut phases);

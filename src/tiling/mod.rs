@@ -129,11 +129,9 @@ const MAX_HALO_GROWTHS: u32 = 64;
 pub struct TileBudget<'a> {
     /// The partition pass's grid, when there is one.
     pub occupancy: Option<&'a Occupancy>,
-    /// Most points one tile may run the operator on; `None` for no limit.
+    /// Most points one tile's first load may hold; `None` for no limit. A grown halo is not held
+    /// to it (it is what the plan cannot foresee; see docs/DECISIONS.md, issue 16).
     pub max_points: Option<u64>,
-    /// Most points a tile whose halo had to grow may run on (a grown halo is the exception the
-    /// plan cannot foresee; it may take more than the planned share, up to this bound).
-    pub grown_points: Option<u64>,
     /// Most points a halo load may read before they are counted (the grid's upper bound on a
     /// region; each read point costs far less than one the operator runs on).
     pub max_staged: Option<u64>,
@@ -161,47 +159,13 @@ impl TileBudget<'_> {
         Ok(())
     }
 
-    /// The halo to grow to from `from` toward `to`: `to` when the grid's bound on its load fits
-    /// [`TileBudget::grown_points`], else the largest halo between them whose bound fits (found
-    /// by bisection), else a quarter more than `from` (its exact load is checked once read).
-    pub fn fitting_halo(&self, plan: &Plan, t: usize, from: f64, to: f64) -> f64 {
-        let (Some(o), Some(max)) = (self.occupancy, self.grown_points) else {
-            return to;
-        };
-        let fits = |h: f64| o.points_in(&plan.region(t, h)) <= max;
-        if fits(to) {
-            return to;
-        }
-        let (mut lo, mut hi) = (from, to);
-        for _ in 0..24 {
-            let mid = 0.5 * (lo + hi);
-            if fits(mid) { lo = mid } else { hi = mid }
-        }
-        // The bound is coarse (whole cells); the exact count after loading decides.
-        if lo > from * 1.01 {
-            lo
-        } else {
-            (from * 1.25).min(to)
-        }
-    }
-
-    /// [`TilingError::Budget`] when tile `t` loaded more than [`TileBudget::max_points`] (or
-    /// [`TileBudget::grown_points`] when its halo `grown`).
+    /// [`TilingError::Budget`] when tile `t`'s first load holds more than
+    /// [`TileBudget::max_points`].
     ///
     /// # Errors
     /// As said.
-    pub fn check_points(
-        &self,
-        t: usize,
-        points: u64,
-        halo: f64,
-        grown: bool,
-    ) -> Result<(), TilingError> {
-        match if grown {
-            self.grown_points
-        } else {
-            self.max_points
-        } {
+    pub fn check_points(&self, t: usize, points: u64, halo: f64) -> Result<(), TilingError> {
+        match self.max_points {
             Some(max) if points > max => Err(TilingError::Budget {
                 tile: t,
                 points,
@@ -316,7 +280,9 @@ fn with_exact_halo<T>(
         }
         let few = pts.len() < min_points;
         if !few {
-            budget.check_points(t, pts.len() as u64, halo, growths > 0)?;
+            if growths == 0 {
+                budget.check_points(t, pts.len() as u64, halo)?;
+            }
             let (value, exact) = f(&pts, &run)?;
             if exact {
                 return Ok((value, pts, halo, growths));
@@ -330,8 +296,7 @@ fn with_exact_halo<T>(
             // Cannot happen: at the sufficient halo every list and its members are loaded.
             return Err(TilingError::HaloLimit { tile: t, halo });
         } else {
-            let next = sufficient.map_or(halo * 2.0, |s| (halo * 2.0).min(s));
-            halo = budget.fitting_halo(plan, t, halo, next);
+            halo = sufficient.map_or(halo * 2.0, |s| (halo * 2.0).min(s));
         }
         if halo.is_nan() || halo > limit || growths > MAX_HALO_GROWTHS {
             return Err(TilingError::HaloLimit { tile: t, halo });
