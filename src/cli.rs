@@ -1,15 +1,16 @@
 //! The `qemd` command line: argument definitions and their conversion to library parameters.
 //!
-//! Parsing (clap) and validation are kept apart, as in ripgrep: the raw flags here become a
-//! validated [`Params`] through [`DenoiseArgs::params`], and `main` only dispatches.
+//! Parsing (clap) and validation are kept apart, as in ripgrep: the denoising flags are the
+//! parameter spec's [`SpecOverlay`] (flattened into [`DenoiseArgs`]), resolved and validated by
+//! [`SpecOverlay::resolve`] like every other request, and `main` only dispatches.
 
 use std::path::{Path, PathBuf};
 
 use clap::{Args, Parser, Subcommand, ValueEnum};
 
-use crate::denoise::{Method, NormalWeighting, Params, Planes, SolveKind};
 use crate::io::Format;
 use crate::io::raw::BinLayout;
+use crate::pipeline::SpecOverlay;
 
 /// Feature-preserving denoising of meshes and point clouds with the Quadric Error Metric.
 #[derive(Debug, Parser)]
@@ -63,55 +64,6 @@ pub struct ServeArgs {
     pub data_dir: Option<PathBuf>,
 }
 
-/// Solver choice on the command line.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
-pub enum SolveArg {
-    /// w = −A⁻¹b (the paper).
-    Plain,
-    /// w = v − A⁺(Av + b), eigenvalues below eps·λmax dropped.
-    Robust,
-    /// w = v − (A + λI)⁻¹(Av + b).
-    Regularised,
-    /// w = v − (A + μ·tr(A)/3·I)⁻¹(Av + b) (the default).
-    Damped,
-}
-
-/// Method choice on the command line.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
-pub enum MethodArg {
-    /// The QEM operator.
-    Qem,
-    /// Fleishman et al. 2003.
-    Bilateral,
-}
-
-/// Plane choice on the command line.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
-pub enum PlanesArg {
-    /// Filtered face planes (curvature-corrected tangent planes on clouds).
-    Face,
-    /// The paper's tangent planes.
-    Tangent,
-}
-
-/// Normal weighting on the command line.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
-pub enum NormalsArg {
-    /// Area-weighted face normals.
-    Area,
-    /// Plain mean of unit face normals.
-    Mean,
-}
-
-impl From<NormalWeighting> for NormalsArg {
-    fn from(n: NormalWeighting) -> NormalsArg {
-        match n {
-            NormalWeighting::Area => NormalsArg::Area,
-            NormalWeighting::Mean => NormalsArg::Mean,
-        }
-    }
-}
-
 /// Flags of `qemd denoise`.
 #[derive(Debug, Args)]
 pub struct DenoiseArgs {
@@ -136,74 +88,12 @@ pub struct DenoiseArgs {
     /// unnamed). Default: KITTI x,y,z,i for *.bin, nuScenes x,y,z,i,ring for *.pcd.bin.
     #[arg(long, value_name = "FIELDS|N", value_parser = BinLayout::parse)]
     pub bin_fields: Option<BinLayout>,
-    /// Denoising method.
-    #[arg(long, value_enum, default_value_t = MethodArg::Qem)]
-    pub method: MethodArg,
-    /// The paper's Algorithm 1 exactly (tangent planes, raw normals, one plain-solve pass);
-    /// other flags still override.
-    #[arg(long)]
-    pub paper: bool,
-    /// face (default: filtered face planes; curvature-corrected tangent planes on clouds) or
-    /// tangent (the paper: vertex tangent planes over k-rings / k-NN lists).
-    #[arg(long, value_enum)]
-    pub planes: Option<PlanesArg>,
-    /// Normal-filter iterations per cycle (0: raw normals). Default 10 on meshes, 3 on clouds.
-    #[arg(long)]
-    pub filter: Option<usize>,
-    /// QEM updates per cycle. Default 5 on meshes, 2 on clouds.
-    #[arg(long)]
-    pub updates: Option<usize>,
-    /// Relative step penalty of the damped solve.
-    #[arg(long, default_value_t = Params::default().mu)]
-    pub mu: f64,
-    /// Lower bound of the normal filter's range width (default 0.35 meshes, 0.2 clouds).
-    #[arg(long)]
-    pub sigma_r: Option<f64>,
-    /// Do not restore the enclosed volume of closed meshes.
-    #[arg(long)]
-    pub no_volume: bool,
-    /// Clouds: move every point with a surface or line quadric, whatever its neighbourhood looks
-    /// like (by default scatter, sparse and degenerate neighbourhoods stay, plane votes are
-    /// weighted by agreement and every step is bounded by the local noise; --paper implies this).
-    #[arg(long)]
-    pub no_guard: bool,
-    /// Hard cap on any point's displacement, in the input's units (metres for LiDAR). Default: none
-    /// beyond the operator's own bound of 3 × the local noise.
-    #[arg(long, value_name = "DISTANCE")]
-    pub max_move: Option<f64>,
-    /// k-ring size of tangent planes in mesh mode (the vertex itself included).
-    #[arg(long, default_value_t = Params::default().rings)]
-    pub rings: usize,
-    /// Neighbourhood size in point mode (the point itself included); forces point mode. Default
-    /// 16 on point clouds; meshes run on k-rings unless it is given.
-    #[arg(long)]
-    pub knn: Option<usize>,
-    /// Mesh vertex normals.
-    #[arg(long, value_enum, default_value_t = NormalsArg::from(Params::default().normals))]
-    pub normals: NormalsArg,
-    /// How the quadric minimiser is found.
-    #[arg(long, value_enum)]
-    pub solve: Option<SolveArg>,
-    /// Relative eigenvalue cut-off of the robust solve.
-    #[arg(long, default_value_t = Params::default().eps)]
-    pub eps: f64,
-    /// Step penalty of the regularised solve.
-    #[arg(long, default_value_t = Params::default().lambda)]
-    pub lambda: f64,
-    /// Cycles (QEM: normal filter then updates; default 0, which chooses from the data on meshes
-    /// and is 1 on clouds) or passes (bilateral, default 3).
-    #[arg(long)]
-    pub iterations: Option<usize>,
+    /// The denoising parameters (the same spec as a job's `params` and the sync query string).
+    #[command(flatten)]
+    pub spec: SpecOverlay,
     /// Worker threads (default: all cores); the output is identical for any value.
     #[arg(long)]
     pub threads: Option<usize>,
-    /// Statistical outliers: leave them, flag them (LAS class 7, or a `noise` property in PLY,
-    /// PCD and text; flagged points keep their input position), or remove them.
-    #[arg(long, value_enum, default_value_t = OutliersArg::Off)]
-    pub outliers: OutliersArg,
-    /// Outlier threshold: mean k-NN distance above mean + ALPHA·σ (default from config: 2).
-    #[arg(long)]
-    pub outlier_alpha: Option<f64>,
     /// Memory budget; clouds whose working set is larger run in tiles (e.g. "4 GiB"). Default:
     /// `memory_budget` of the configuration, 1 GiB unless set there or in QEMD_MEMORY_BUDGET.
     #[arg(long)]
@@ -226,17 +116,6 @@ pub struct DenoiseArgs {
     /// Print nothing but errors.
     #[arg(short, long)]
     pub quiet: bool,
-}
-
-/// Outlier handling on the command line.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
-pub enum OutliersArg {
-    /// Leave outliers.
-    Off,
-    /// Flag them.
-    Classify,
-    /// Drop them.
-    Remove,
 }
 
 /// Parses a `--format` value.
@@ -275,68 +154,6 @@ impl DenoiseArgs {
             with_layout(self.input_format, &self.input, self.bin_fields),
             with_layout(self.format, &self.output, self.bin_fields),
         )
-    }
-
-    /// The parameters these flags select, on top of the defaults (or of the paper's operator
-    /// with `--paper`); not yet validated.
-    pub fn params(&self) -> Params {
-        let base = if self.paper {
-            Params::paper()
-        } else {
-            Params::default()
-        };
-        let mut p = Params {
-            method: match self.method {
-                MethodArg::Qem => Method::Qem,
-                MethodArg::Bilateral => Method::Bilateral,
-            },
-            knn: self.knn,
-            ..base
-        };
-        p.rings = self.rings;
-        p.normals = match self.normals {
-            NormalsArg::Area => NormalWeighting::Area,
-            NormalsArg::Mean => NormalWeighting::Mean,
-        };
-        if let Some(pl) = self.planes {
-            p.planes = match pl {
-                PlanesArg::Face => Planes::Face,
-                PlanesArg::Tangent => Planes::Tangent,
-            };
-        }
-        if let Some(s) = self.solve {
-            p.solve = match s {
-                SolveArg::Plain => SolveKind::Plain,
-                SolveArg::Robust => SolveKind::Robust,
-                SolveArg::Regularised => SolveKind::Regularised,
-                SolveArg::Damped => SolveKind::Damped,
-            };
-        }
-        if self.filter.is_some() {
-            p.filter = self.filter;
-        }
-        if self.updates.is_some() {
-            p.updates = self.updates;
-        }
-        p.eps = self.eps;
-        p.lambda = self.lambda;
-        p.mu = self.mu;
-        if self.sigma_r.is_some() {
-            p.sigma_r = self.sigma_r;
-        }
-        if self.no_volume {
-            p.volume = false;
-        }
-        if self.no_guard {
-            p.guard = false;
-        }
-        if self.max_move.is_some() {
-            p.max_move = self.max_move;
-        }
-        if let Some(i) = self.iterations {
-            p.iterations = i;
-        }
-        p
     }
 }
 
@@ -534,64 +351,74 @@ pub struct SpectrumArgs {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::denoise::{Method, NormalWeighting, Params, Planes, SolveKind};
+    use crate::pipeline::{DEFAULT_OUTLIER_ALPHA, OutlierMode};
 
-    #[test]
-    fn denoise_flags_map_to_params() {
-        let cli = Cli::parse_from([
-            "qemd",
-            "denoise",
-            "in.ply",
-            "-o",
-            "out.ply",
-            "--paper",
-            "--rings",
-            "3",
-            "--normals",
-            "mean",
-        ]);
+    fn params(args: &[&str]) -> Params {
+        let cli = Cli::parse_from(
+            ["qemd", "denoise", "a.ply", "-o", "b.ply"]
+                .iter()
+                .chain(args),
+        );
         let Command::Denoise(a) = cli.command else {
             panic!("not denoise")
         };
-        let p = a.params();
+        a.spec.resolve(DEFAULT_OUTLIER_ALPHA).unwrap().params
+    }
+
+    #[test]
+    fn denoise_flags_map_to_params() {
+        let p = params(&["--paper", "--rings", "3", "--normals", "mean"]);
         assert_eq!(p.rings, 3);
         assert_eq!(p.normals, NormalWeighting::Mean);
         assert_eq!(p.solve, SolveKind::Plain);
         assert_eq!(p.planes, Planes::Tangent);
         assert_eq!((p.filter, p.updates, p.iterations), (Some(0), Some(1), 1));
-        let cli = Cli::parse_from([
-            "qemd",
-            "denoise",
-            "a",
-            "-o",
-            "b",
-            "--filter",
-            "4",
-            "--no-volume",
-        ]);
-        let Command::Denoise(a) = cli.command else {
-            panic!("not denoise")
-        };
-        let q = a.params();
+        // --paper's base is not overwritten by flags that were not given (the paper clears the
+        // volume step; a default for --no-volume must not set it back).
+        assert!(!p.volume && !p.guard);
+        let q = params(&["--filter", "4", "--no-volume"]);
         assert_eq!(
-            (q.filter, q.volume, q.planes),
-            (Some(4), false, Planes::Face)
+            (q.filter, q.volume, q.guard, q.planes),
+            (Some(4), false, true, Planes::Face)
         );
+        assert_eq!(params(&[]), Params::default());
+        assert!(!params(&["--no-guard"]).guard);
+        assert!(
+            Cli::try_parse_from(["qemd", "denoise", "a.ply", "-o", "b", "--format", "doc"])
+                .is_err()
+        );
+    }
+
+    #[test]
+    fn issue10_bilateral_from_the_cli_is_the_api_spec() {
+        // The CLI stored iterations 0 and the API forced 3; both now leave it to the schedule.
+        let cli = params(&["--method", "bilateral"]);
+        let api: crate::pipeline::SpecOverlay =
+            serde_json::from_value(serde_json::json!({"method": "bilateral"})).unwrap();
+        let api = api.resolve(DEFAULT_OUTLIER_ALPHA).unwrap().params;
+        assert_eq!(cli, api);
+        assert_eq!(cli.method, Method::Bilateral);
+        assert_eq!(cli.schedule(true).cycles, 3);
+    }
+
+    #[test]
+    fn outlier_flags_are_spec_fields() {
         let cli = Cli::parse_from([
             "qemd",
             "denoise",
             "a.ply",
             "-o",
             "b.ply",
-            "--method",
-            "bilateral",
+            "--outliers",
+            "classify",
+            "--outlier-alpha",
+            "1.5",
         ]);
         let Command::Denoise(a) = cli.command else {
             panic!("not denoise")
         };
-        assert_eq!(a.params().schedule(true).cycles, 3);
-        assert!(
-            Cli::try_parse_from(["qemd", "denoise", "a.ply", "-o", "b", "--format", "doc"])
-                .is_err()
-        );
+        let s = a.spec.resolve(DEFAULT_OUTLIER_ALPHA).unwrap();
+        assert_eq!((s.outliers, s.outlier_alpha), (OutlierMode::Classify, 1.5));
     }
 }

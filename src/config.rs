@@ -106,12 +106,8 @@ impl Config {
         let c: Config = fig
             .extract()
             .map_err(|e| ConfigError::Invalid(e.to_string()))?;
-        if !(c.outlier_alpha.is_finite() && c.outlier_alpha >= 0.0) {
-            return Err(ConfigError::Invalid(format!(
-                "outlier_alpha must be finite and ≥ 0, got {}",
-                c.outlier_alpha
-            )));
-        }
+        crate::pipeline::validate_alpha(c.outlier_alpha)
+            .map_err(|e| ConfigError::Invalid(e.to_string()))?;
         c.validate_service()?;
         Ok(c)
     }
@@ -194,6 +190,16 @@ mod tests {
     use super::*;
 
     #[test]
+    fn issue10_outlier_alpha_has_one_default() {
+        // The embedded configuration, the service's settings and a library job agree (they
+        // said 2, 2 and 1 before the spec).
+        let want = crate::pipeline::DEFAULT_OUTLIER_ALPHA;
+        assert_eq!(Config::load(None).unwrap().outlier_alpha, want);
+        assert_eq!(crate::jobs::Settings::default().outlier_alpha, want);
+        assert_eq!(crate::pipeline::Job::new("a", "b").spec.outlier_alpha, want);
+    }
+
+    #[test]
     fn defaults_file_and_unknown_keys() {
         let c = Config::load(None).unwrap();
         assert_eq!(c.memory_budget.as_u64(), 1 << 30);
@@ -204,6 +210,11 @@ mod tests {
         let c = Config::load(Some(&f)).unwrap();
         assert_eq!(c.memory_budget.as_u64(), 64 << 20);
         assert_eq!(c.outlier_alpha, 3.0);
+        std::fs::write(&f, "outlier_alpha = -1.0\n").unwrap();
+        assert!(matches!(
+            Config::load(Some(&f)),
+            Err(ConfigError::Invalid(m)) if m.contains("outlier_alpha")
+        ));
         std::fs::write(&f, "memroy_budget = 1\n").unwrap();
         assert!(matches!(
             Config::load(Some(&f)),

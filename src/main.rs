@@ -13,8 +13,8 @@ use clap::Parser;
 use qem_denoise::api::ApiSettings;
 use qem_denoise::api::server::{ServeOptions, Server, shutdown_signal};
 use qem_denoise::cli::{
-    Cli, Command, DemoArgs, DenoiseArgs, EvalArgs, HarmArgs, NoiseArgs, NoiseUnit, OutliersArg,
-    RenderArgs, ReportArgs, ServeArgs, SpectrumArgs, SynthArgs, TableArgs,
+    Cli, Command, DemoArgs, DenoiseArgs, EvalArgs, HarmArgs, NoiseArgs, NoiseUnit, RenderArgs,
+    ReportArgs, ServeArgs, SpectrumArgs, SynthArgs, TableArgs,
 };
 use qem_denoise::config::{Config, LogFormat};
 use qem_denoise::denoise::{self, Params};
@@ -28,7 +28,7 @@ use qem_denoise::eval::synth::Shape;
 use qem_denoise::eval::table::{TableSpec, run_table_with_progress};
 use qem_denoise::io::{self, BATCH, Cloud, Format, SourceInfo};
 use qem_denoise::pipeline::{
-    self, BarProgress, Job, LogProgress, NoProgress, OutlierMode, Progress, RunOptions,
+    self, BarProgress, Job, LogProgress, NoProgress, Progress, RunOptions,
 };
 use qem_denoise::points::{PointBatch, ScalarType};
 
@@ -141,13 +141,7 @@ fn denoise(a: DenoiseArgs) -> Result<()> {
         output: a.output.clone(),
         input_format,
         output_format,
-        params: a.params(),
-        outliers: match a.outliers {
-            OutliersArg::Off => OutlierMode::Off,
-            OutliersArg::Classify => OutlierMode::Classify,
-            OutliersArg::Remove => OutlierMode::Remove,
-        },
-        outlier_alpha: a.outlier_alpha.unwrap_or(config.outlier_alpha),
+        spec: a.spec.resolve(config.outlier_alpha)?,
     };
     let progress: Arc<dyn Progress> = if a.quiet {
         Arc::new(NoProgress)

@@ -287,7 +287,7 @@ fn issue12_e57_two_scans_read_with_poses_spherical_and_attributes() {
     check_against(&c, &exp);
     // Sniffed by content.
     let head = std::fs::read(&p).unwrap();
-    assert_eq!(io::sniff::sniff(&head[..64]), Some("e57"));
+    assert_eq!(io::sniff::sniff(&head[..64]), Some(io::Format::E57));
 }
 
 #[test]

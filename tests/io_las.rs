@@ -326,7 +326,8 @@ mod io_las {
                 let c = Cloud::read(&src, None).unwrap();
                 let what = format!("LAS 1.{minor} PDRF {pdrf} {e}");
                 assert_eq!(c.len(), spec.n, "{what}");
-                assert_eq!(c.info.format, Format::Las);
+                let want = if compressed { Format::Laz } else { Format::Las };
+                assert_eq!(c.info.format, want, "{what}");
                 assert_eq!(c.info.schema.record_len, spec.record_len(), "{what}");
                 assert_eq!(c.records, recs, "{what}: records as written");
                 let s = &c.info.schema;

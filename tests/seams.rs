@@ -142,10 +142,9 @@ fn assert_seamless(input: &Path, job: &Job, sizes: &[u64]) -> Vec<Report> {
 }
 
 fn job(params: Params) -> Job {
-    Job {
-        params,
-        ..Job::new("", "")
-    }
+    let mut j = Job::new("", "");
+    j.spec.params = params;
+    j
 }
 
 /// Tile sizes from one tile down to a dozen points per tile (hundreds of tiles). Debug builds
@@ -172,8 +171,8 @@ fn clustered_cloud_with_removed_outliers() {
         knn: Some(10),
         ..Params::default()
     });
-    j.outliers = OutlierMode::Remove;
-    j.outlier_alpha = 1.0;
+    j.spec.outliers = OutlierMode::Remove;
+    j.spec.outlier_alpha = 1.0;
     let reports = assert_seamless(&input, &j, SIZES);
     assert!(reports[0].outliers_found > 0);
     assert!(

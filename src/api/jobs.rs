@@ -8,12 +8,11 @@
 //!  "output_format": "laz"}
 //! ```
 //!
-//! Only `input` is required. `params` takes the CLI's names ([`crate::denoise::Params`]:
-//! method, rings, knn, normals, planes, filter, updates, solve, eps, lambda, mu, sigma_r,
-//! volume, iterations, and `paper` for `--paper`) plus `outliers` and `outlier_alpha` (also
-//! accepted at the top level, like `method`). As on the command line,
-//! `bilateral` defaults to three iterations. Any bad field answers 422 naming it
-//! (`params.knn`, `output_format`, `input`, …).
+//! Only `input` is required. `params` is the parameter spec ([`SpecOverlay`]: the CLI's names
+//! in snake case, `paper` for `--paper`, `outliers` and `outlier_alpha`); `method`, `outliers`
+//! and `outlier_alpha` are also accepted at the top level. Defaults and validation are the
+//! spec's, as on the command line. Any bad field answers 422 naming it (`params.knn`,
+//! `output_format`, `input`, …).
 
 use axum::Extension;
 use axum::body::Body;
@@ -25,9 +24,9 @@ use serde_json::{Map, Value, json};
 use super::auth::Tenant;
 use super::uploads::parse_query;
 use super::{ApiError, AppState, media_type, read_limited, timestamp};
-use crate::denoise::{Method, Params};
+use crate::denoise::Method;
 use crate::jobs::{JobInfo, JobRequest, Status};
-use crate::pipeline::OutlierMode;
+use crate::pipeline::{OutlierMode, SpecOverlay};
 
 /// Largest job submission body.
 const MAX_JSON: u64 = 64 << 10;
@@ -74,71 +73,21 @@ struct Submission {
     output_format: Option<String>,
 }
 
-/// Builds parameters from a `params` object (CLI names) and the top-level `method`: returns the
-/// parameters, the outlier mode and threshold.
-pub(crate) fn params_from(
-    mut map: Map<String, Value>,
-    method: Option<Method>,
-    outliers: Option<OutlierMode>,
-    outlier_alpha: Option<f64>,
+/// The parameter choices of a request: the `params` object (the spec's names, [`SpecOverlay`])
+/// under the choices given at the top level (`method`, `outliers`, `outlier_alpha`); a field
+/// both give with different values is refused. Field errors name `prefix.field`.
+pub(crate) fn overlay_from(
+    params: Map<String, Value>,
+    top: SpecOverlay,
     prefix: &str,
-) -> Result<(Params, OutlierMode, Option<f64>), ApiError> {
-    let dotted = |f: &str| {
-        if prefix.is_empty() {
-            f.to_string()
-        } else {
-            format!("{prefix}.{f}")
-        }
-    };
-    let inner_outliers: Option<OutlierMode> = match map.remove("outliers") {
-        Some(v) => Some(from_value(v, &dotted("outliers"))?),
-        None => None,
-    };
-    let inner_alpha: Option<f64> = match map.remove("outlier_alpha") {
-        Some(v) => Some(from_value(v, &dotted("outlier_alpha"))?),
-        None => None,
-    };
-    let twice = |f: &str| ApiError::invalid(f, "given both at the top level and in params");
-    if outliers.is_some() && inner_outliers.is_some() {
-        return Err(twice("outliers"));
-    }
-    if outlier_alpha.is_some() && inner_alpha.is_some() {
-        return Err(twice("outlier_alpha"));
-    }
-    // `paper: true` is the CLI's `--paper`: the paper's Algorithm 1 as the base, the other
-    // fields still override it.
-    let paper: bool = match map.remove("paper") {
-        Some(v) => from_value(v, &dotted("paper"))?,
-        None => false,
-    };
-    let has_iterations = map.contains_key("iterations");
-    let has_method = map.contains_key("method");
-    if paper {
-        let Ok(Value::Object(mut base)) = serde_json::to_value(Params::paper()) else {
-            return Err(ApiError::invalid(dotted("paper"), "cannot be applied"));
-        };
-        base.extend(map);
-        map = base;
-    }
-    let mut params: Params = from_value(Value::Object(map), prefix)?;
-    if let Some(m) = method {
-        if has_method && params.method != m {
-            return Err(ApiError::invalid(
-                "method",
-                "differs from params.method; give it once",
-            ));
-        }
-        params.method = m;
-    }
-    if params.method == Method::Bilateral && !has_iterations {
-        // As `qemd denoise --method bilateral`: Fleishman et al. iterate, the paper uses three.
-        params.iterations = 3;
-    }
-    Ok((
-        params,
-        outliers.or(inner_outliers).unwrap_or_default(),
-        outlier_alpha.or(inner_alpha),
-    ))
+) -> Result<SpecOverlay, ApiError> {
+    let inner: SpecOverlay = from_value(Value::Object(params), prefix)?;
+    top.merge(inner).map_err(|f| {
+        ApiError::invalid(
+            f,
+            format!("differs between the top level and {prefix}; give it once"),
+        )
+    })
 }
 
 /// The JSON view of a job.
@@ -177,9 +126,9 @@ pub(crate) fn view(info: &JobInfo) -> Value {
         "processID": "denoise",
         "status": r.status.as_str(),
         "input": r.upload,
-        "params": r.spec.params,
-        "outliers": r.spec.outliers,
-        "outlier_alpha": r.spec.outlier_alpha,
+        "params": r.spec.denoise.params,
+        "outliers": r.spec.denoise.outliers,
+        "outlier_alpha": r.spec.denoise.outlier_alpha,
         "output_format": r.spec.output_format,
         "tiled": r.spec.tile_points.is_some(),
         "created": timestamp(r.created_ms),
@@ -215,22 +164,20 @@ pub async fn create(
         ));
     }
     let s: Submission = from_value(value, "")?;
-    let (params, outliers, outlier_alpha) = params_from(
-        s.params.unwrap_or_default(),
-        s.method,
-        s.outliers,
-        s.outlier_alpha,
-        "params",
-    )?;
+    let top = SpecOverlay {
+        method: s.method,
+        outliers: s.outliers,
+        outlier_alpha: s.outlier_alpha,
+        ..SpecOverlay::default()
+    };
+    let spec = overlay_from(s.params.unwrap_or_default(), top, "params")?;
     let row = state
         .jobs
         .submit(
             &tenant,
             JobRequest {
                 input: s.input,
-                params,
-                outliers,
-                outlier_alpha,
+                spec,
                 output_format: s.output_format,
             },
         )
@@ -338,21 +285,27 @@ mod tests {
     #[test]
     fn params_with_cli_names() {
         let map = |v: Value| v.as_object().unwrap().clone();
-        let (p, o, a) = params_from(
+        let none = SpecOverlay::default;
+        let o = overlay_from(
             map(json!({"knn": 8, "outliers": "classify", "outlier_alpha": 3.0})),
-            None,
-            None,
-            None,
+            none(),
             "params",
         )
         .unwrap();
-        assert_eq!(p.knn, Some(8));
-        assert_eq!(o, OutlierMode::Classify);
-        assert_eq!(a, Some(3.0));
-        let (p, _, _) =
-            params_from(Map::new(), Some(Method::Bilateral), None, None, "params").unwrap();
-        assert_eq!(p.iterations, 3);
-        let err = |v: Value| match params_from(map(v), None, None, None, "params") {
+        assert_eq!(o.knn, Some(8));
+        assert_eq!(o.outliers, Some(OutlierMode::Classify));
+        assert_eq!(o.outlier_alpha, Some(3.0));
+        let top = SpecOverlay {
+            method: Some(Method::Bilateral),
+            ..none()
+        };
+        let o = overlay_from(Map::new(), top.clone(), "params").unwrap();
+        assert_eq!(o.method, Some(Method::Bilateral));
+        assert!(matches!(
+            overlay_from(map(json!({"method": "qem"})), top, "params"),
+            Err(ApiError::Unprocessable { field: Some(f), .. }) if f == "method"
+        ));
+        let err = |v: Value| match overlay_from(map(v), none(), "params") {
             Err(ApiError::Unprocessable { field, .. }) => field.unwrap(),
             other => panic!("{other:?}"),
         };

@@ -9,83 +9,58 @@
 //! Nothing is written to the job store; the CPU work runs on the synchronous path's rayon pool.
 //! Beyond `sync_concurrency` requests in flight the answer is 429 with `Retry-After`.
 
+use super::auth::Tenant;
+use super::jobs::field_of;
+use super::{ApiError, AppState, format_of_media_type, media_type, media_type_of, read_limited};
+use crate::io::sniff::{SNIFF_LEN, sniff};
+use crate::jobs::{SyncRequest, canonical_format};
+use crate::pipeline::SpecOverlay;
 use axum::Extension;
 use axum::body::Body;
 use axum::extract::{RawQuery, State};
 use axum::http::{HeaderMap, HeaderName, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
-use serde_json::{Map, Value};
 
-use super::auth::Tenant;
-use super::jobs::params_from;
-use super::{ApiError, AppState, format_of_media_type, media_type, media_type_of, read_limited};
-use crate::io::sniff::{SNIFF_LEN, sniff};
-use crate::jobs::{SyncRequest, canonical_format};
+/// A query string split: input format, output format, the parameter choices.
+type Split = (Option<String>, Option<String>, SpecOverlay);
 
-/// Parameters whose values are numbers (query strings carry text).
-const NUMERIC: [&str; 11] = [
-    "rings",
-    "knn",
-    "filter",
-    "updates",
-    "eps",
-    "lambda",
-    "mu",
-    "sigma_r",
-    "iterations",
-    "outlier_alpha",
-    "max_move",
-];
-
-/// Parameters whose values are booleans (`true` or `false`).
-const BOOLEAN: [&str; 3] = ["paper", "volume", "guard"];
-
-/// A query string split: input format, output format, denoising parameters (JSON object).
-type Split = (Option<String>, Option<String>, Map<String, Value>);
-
-/// Splits a query string into the format choices and a JSON object of denoising parameters.
+/// Splits a query string into the format choices and the parameter spec's choices, which
+/// deserialise straight from the text (numbers, booleans and names parsed by their types, so
+/// the accepted names and their types are the spec's own).
 fn split_query(query: Option<&str>) -> Result<Split, ApiError> {
     let pairs: Vec<(String, String)> = match query {
         None => Vec::new(),
         Some(q) => serde_urlencoded::from_str(q)
             .map_err(|e| ApiError::BadRequest(format!("query string: {e}")))?,
     };
-    let (mut format, mut output, mut map) = (None, None, Map::new());
+    let (mut format, mut output, mut rest) = (None, None, Vec::new());
     for (k, v) in pairs {
-        let value = if NUMERIC.contains(&k.as_str()) {
-            match serde_json::from_str::<serde_json::Number>(&v) {
-                Ok(n) => Value::Number(n),
-                Err(_) => {
-                    return Err(ApiError::invalid(
-                        k.as_str(),
-                        format!("`{v}` is not a number"),
-                    ));
-                }
+        let slot = match k.as_str() {
+            "format" => &mut format,
+            "output_format" => &mut output,
+            _ => {
+                rest.push((k, v));
+                continue;
             }
-        } else if BOOLEAN.contains(&k.as_str()) {
-            match v.as_str() {
-                "true" => Value::Bool(true),
-                "false" => Value::Bool(false),
-                _ => {
-                    return Err(ApiError::invalid(
-                        k.as_str(),
-                        format!("`{v}` is not `true` or `false`"),
-                    ));
-                }
-            }
-        } else {
-            Value::String(v)
         };
-        let dup = match k.as_str() {
-            "format" => format.replace(value.as_str().unwrap_or_default().to_string()),
-            "output_format" => output.replace(value.as_str().unwrap_or_default().to_string()),
-            _ => map.insert(k.clone(), value).map(|_| String::new()),
-        };
-        if dup.is_some() {
+        if slot.replace(v).is_some() {
             return Err(ApiError::invalid(k, "given twice"));
         }
     }
-    Ok((format, output, map))
+    let text = serde_urlencoded::to_string(&rest)
+        .map_err(|e| ApiError::BadRequest(format!("query string: {e}")))?;
+    let pairs = serde_urlencoded::Deserializer::new(form_urlencoded::parse(text.as_bytes()));
+    let spec: SpecOverlay = serde_path_to_error::deserialize(pairs).map_err(|e| {
+        let msg = e.inner().to_string();
+        let field = field_of(&e.path().to_string(), &msg, "");
+        // serde names a repeated parameter in the message only.
+        let field = match msg.strip_prefix("duplicate field `") {
+            Some(rest) => rest.split('`').next().unwrap_or_default().to_string(),
+            None => field,
+        };
+        ApiError::invalid(field, msg)
+    })?;
+    Ok((format, output, spec))
 }
 
 /// `POST /v1/denoise`.
@@ -96,8 +71,7 @@ pub async fn denoise(
     headers: HeaderMap,
     body: Body,
 ) -> Result<Response, ApiError> {
-    let (format, output_format, map) = split_query(query.as_deref())?;
-    let (params, outliers, outlier_alpha) = params_from(map, None, None, None, "")?;
+    let (format, output_format, spec) = split_query(query.as_deref())?;
     let from_type = format_of_media_type(&headers).ok_or_else(|| {
         ApiError::UnsupportedMediaType(format!(
             "content type `{}` is not a scan; send the file as application/octet-stream",
@@ -112,7 +86,7 @@ pub async fn denoise(
             ))
         })?,
         None => sniff(&bytes[..bytes.len().min(SNIFF_LEN)])
-            .map(str::to_string)
+            .map(|f| f.name().to_string())
             .ok_or_else(|| {
                 ApiError::UnsupportedMediaType(
                     "cannot tell the format from the content; name it with ?format=".into(),
@@ -125,9 +99,7 @@ pub async fn denoise(
             bytes,
             SyncRequest {
                 format,
-                params,
-                outliers,
-                outlier_alpha,
+                spec,
                 output_format,
             },
         )
@@ -171,23 +143,41 @@ mod tests {
     #[test]
     fn query_parameters() {
         let (f, o, m) = split_query(Some(
-            "format=ply&knn=8&solve=plain&output_format=xyz&eps=0.5",
+            "format=ply&knn=8&solve=plain&output_format=xyz&eps=0.5&guard=false",
         ))
         .unwrap();
         assert_eq!(f.as_deref(), Some("ply"));
         assert_eq!(o.as_deref(), Some("xyz"));
-        assert_eq!(m["knn"], 8);
-        assert_eq!(m["eps"], 0.5);
-        assert_eq!(m["solve"], "plain");
-        assert!(matches!(
-            split_query(Some("knn=many")),
-            Err(ApiError::Unprocessable { field: Some(f), .. }) if f == "knn"
-        ));
-        assert!(split_query(Some("knn=3&knn=4")).is_err());
-        let (_, _, m) = split_query(Some("knnn=3")).unwrap();
-        assert!(matches!(
-            params_from(m, None, None, None, ""),
-            Err(ApiError::Unprocessable { field: Some(f), .. }) if f == "knnn"
-        ));
+        assert_eq!(m.knn, Some(8));
+        assert_eq!(m.eps, Some(0.5));
+        assert_eq!(m.solve, Some(crate::denoise::SolveKind::Plain));
+        assert_eq!(m.guard, Some(false));
+        let field = |q: &str| match split_query(Some(q)) {
+            Err(ApiError::Unprocessable { field: Some(f), .. }) => f,
+            other => panic!("{q}: {other:?}"),
+        };
+        assert_eq!(field("knn=many"), "knn");
+        assert_eq!(field("knn=3&knn=4"), "knn");
+        assert_eq!(field("format=ply&format=las"), "format");
+        assert_eq!(field("knnn=3"), "knnn");
+        assert_eq!(field("volume=maybe"), "volume");
+    }
+
+    #[test]
+    fn issue10_the_422_names_every_spec_field() {
+        // An unknown parameter's answer lists the accepted names: all of the spec's, outlier
+        // options included (a hand-kept list used to leave those out).
+        let Err(ApiError::Unprocessable { detail, .. }) = split_query(Some("knnn=3")) else {
+            panic!("accepted");
+        };
+        for f in SpecOverlay::fields() {
+            assert!(
+                detail.contains(&format!("`{f}`")),
+                "{f} missing from: {detail}"
+            );
+        }
+        let (_, _, m) = split_query(Some("outliers=remove&outlier_alpha=1.5")).unwrap();
+        assert_eq!(m.outliers, Some(crate::pipeline::OutlierMode::Remove));
+        assert_eq!(m.outlier_alpha, Some(1.5));
     }
 }

@@ -121,8 +121,8 @@ async fn openapi_document_agrees_with_the_router() {
 
 #[test]
 fn openapi_params_are_the_cli_params() {
-    // Every field of `Params` (the CLI's flags) is documented, and nothing else but the presets
-    // and outlier options the job body adds; the sync path's query parameters are the same set.
+    // Every field of the parameter spec is documented, and nothing else; the sync path's query
+    // parameters are the same set.
     let doc = openapi_document().unwrap();
     let documented: BTreeSet<String> = doc["components"]["schemas"]["Params"]["properties"]
         .as_object()
@@ -130,13 +130,11 @@ fn openapi_params_are_the_cli_params() {
         .keys()
         .cloned()
         .collect();
-    let serde_json::Value::Object(fields) =
-        serde_json::to_value(crate::denoise::Params::default()).unwrap()
-    else {
-        panic!("Params is not an object");
-    };
-    let mut expected: BTreeSet<String> = fields.keys().cloned().collect();
-    expected.extend(["paper", "outliers", "outlier_alpha"].map(String::from));
+    // The spec's own field names, as serde reads them (not a list kept here).
+    let expected: BTreeSet<String> = crate::pipeline::SpecOverlay::fields()
+        .iter()
+        .map(|f| f.to_string())
+        .collect();
     assert_eq!(documented, expected);
     let query: BTreeSet<String> = doc["paths"]["/v1/denoise"]["post"]["parameters"]
         .as_array()
@@ -146,32 +144,6 @@ fn openapi_params_are_the_cli_params() {
         .filter(|n| n != "format" && n != "output_format")
         .collect();
     assert_eq!(query, expected);
-}
-
-#[test]
-fn paper_preset_in_job_params_is_the_cli_flag() {
-    let map = |v: serde_json::Value| v.as_object().unwrap().clone();
-    let (p, _, _) = jobs::params_from(
-        map(serde_json::json!({"paper": true})),
-        None,
-        None,
-        None,
-        "",
-    )
-    .unwrap();
-    assert_eq!(p, crate::denoise::Params::paper());
-    let (p, _, _) = jobs::params_from(
-        map(serde_json::json!({"paper": true, "solve": "robust"})),
-        None,
-        None,
-        None,
-        "",
-    )
-    .unwrap();
-    assert_eq!(p.solve, crate::denoise::SolveKind::Robust);
-    assert_eq!(p.planes, crate::denoise::Params::paper().planes);
-    let (p, _, _) = jobs::params_from(map(serde_json::json!({})), None, None, None, "").unwrap();
-    assert_eq!(p, crate::denoise::Params::default());
 }
 
 #[tokio::test]

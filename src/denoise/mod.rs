@@ -44,7 +44,7 @@ pub enum DenoiseError {
     /// A parameter is out of range.
     #[error("invalid parameter {name}: {detail}")]
     Param {
-        /// Parameter name as the CLI spells it.
+        /// Parameter name as the spec spells it (`sigma_r`; the CLI flag is `--sigma-r`).
         name: &'static str,
         /// What is wrong.
         detail: String,
@@ -83,6 +83,7 @@ impl From<GeometryError> for DenoiseError {
 
 /// The denoising method.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize, Default)]
+#[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
 #[serde(rename_all = "lowercase")]
 pub enum Method {
     /// Quadric Error Metric operator (Vieira et al., Algorithm 1).
@@ -94,6 +95,7 @@ pub enum Method {
 
 /// How mesh vertex normals are formed from the incident faces.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize, Default)]
+#[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
 #[serde(rename_all = "lowercase")]
 pub enum NormalWeighting {
     /// Sum of the unnormalised face cross products (area-weighted), normalised.
@@ -105,6 +107,7 @@ pub enum NormalWeighting {
 
 /// The solver as the CLI names it.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize, Default)]
+#[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
 #[serde(rename_all = "lowercase")]
 pub enum SolveKind {
     /// `w = −A⁻¹b` (the paper).
@@ -121,6 +124,7 @@ pub enum SolveKind {
 
 /// Which planes the quadrics are built from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize, Default)]
+#[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
 #[serde(rename_all = "lowercase")]
 pub enum Planes {
     /// Meshes: each face's plane (its — filtered — normal through its centroid), area-weighted,
@@ -326,10 +330,10 @@ impl Params {
             .sigma_r
             .is_some_and(|s| !s.is_finite() || s <= 0.0 || s > 2.0)
         {
-            return bad("sigma-r", "must be in (0, 2]");
+            return bad("sigma_r", "must be in (0, 2]");
         }
         if self.max_move.is_some_and(|m| !m.is_finite() || m < 0.0) {
-            return bad("max-move", "must be finite and ≥ 0");
+            return bad("max_move", "must be finite and ≥ 0");
         }
         self.solver().validate()?;
         Ok(())

@@ -156,7 +156,13 @@ impl Up {
     pub fn of_format(format: crate::io::Format) -> Up {
         use crate::io::Format;
         match format {
-            Format::Las | Format::Pcd | Format::Kitti | Format::Nuscenes | Format::Bin(_) => Up::Z,
+            Format::Las
+            | Format::Laz
+            | Format::Copc
+            | Format::Pcd
+            | Format::Kitti
+            | Format::Nuscenes
+            | Format::Bin(_) => Up::Z,
             _ => Up::Y,
         }
     }

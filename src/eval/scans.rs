@@ -95,7 +95,7 @@ pub fn classes_of(cloud: &Cloud) -> Result<Classes, EvalError> {
     if let Some(i) = field("classification") {
         // LAS 1.4 formats 6–10 have a whole class byte beside `classification_flags`; the older
         // formats keep flags in the top three bits.
-        let las = cloud.info.format == crate::io::Format::Las;
+        let las = cloud.info.format.is_las();
         let whole = field("classification_flags").is_some() || !las;
         let codes = cloud
             .records

@@ -10,7 +10,7 @@
 //! disk as its size. Regular files (and `/dev/stdin` redirected from one) are read in place.
 //!
 //! The format of a stream comes from the format given, else from the path's extension (a FIFO
-//! named `scan.las`), else from the content ([`sniff_format`]). Raw `.bin` scans (KITTI,
+//! named `scan.las`), else from the content ([`sniff`]). Raw `.bin` scans (KITTI,
 //! nuScenes) have no signature and need the format given.
 //!
 //! Errors about a spool name the input as the user gave it (`<stdin>` for `-`), never the
@@ -20,7 +20,7 @@ use std::io::Read;
 use std::path::{Path, PathBuf};
 
 use super::output::is_stdio;
-use super::sniff::{SNIFF_LEN, sniff_format};
+use super::sniff::{SNIFF_LEN, sniff};
 use super::{Format, IoError};
 
 /// How the input is shown in messages when it is standard input.
@@ -97,7 +97,7 @@ impl InputFile {
                 std::fs::File::open(&spool)
                     .and_then(|f| f.take(SNIFF_LEN as u64).read_to_end(&mut head))
                     .map_err(|e| IoError::io(&shown, e))?;
-                sniff_format(&head).ok_or_else(|| {
+                sniff(&head).ok_or_else(|| {
                     IoError::invalid(
                         &shown,
                         "cannot tell the format from the content (raw .bin scans have no \

@@ -227,14 +227,19 @@ pub enum Format {
     Bin(raw::BinLayout),
     /// Point Cloud Library PCD (ascii, binary, binary_compressed).
     Pcd,
-    /// ASPRS LAS (`.las`), LAZ (`.laz`, compressed) and COPC (`.copc.laz`, read as LAZ, written
-    /// as COPC 1.0).
+    /// ASPRS LAS (`.las`), uncompressed.
     Las,
+    /// LAZ (`.laz`): LAS compressed by LASzip.
+    Laz,
+    /// Cloud Optimized Point Cloud (`.copc.laz`): read as the LAZ file it is, written as COPC 1.0
+    /// (points reordered into octree chunks; a regular file only).
+    Copc,
     /// ASTM E57 (`.e57`): terrestrial scans, Cartesian or spherical, several per file.
     E57,
 }
 
-const KNOWN: &str = ".ply, .obj, .off, .xyz, .txt, .pts, .bin, .pcd.bin, .pcd, .las, .laz, .e57";
+const KNOWN: &str =
+    ".ply, .obj, .off, .xyz, .txt, .pts, .bin, .pcd.bin, .pcd, .las, .laz, .copc.laz, .e57";
 
 impl Format {
     /// Tells the format from a file extension (case-insensitive).
@@ -249,6 +254,9 @@ impl Format {
         if name.ends_with(".pcd.bin") {
             return Ok(Format::Nuscenes);
         }
+        if name.ends_with(".copc.laz") {
+            return Ok(Format::Copc);
+        }
         let ext = path
             .extension()
             .and_then(|e| e.to_str())
@@ -262,7 +270,7 @@ impl Format {
     }
 
     /// Parses a format name or extension (`ply`, `obj`, `off`, `xyz`, `txt`, `pts`, `bin`,
-    /// `kitti`, `nuscenes`, `pcd`, `las`, `laz`, `e57`; see [`Format::NAMES`]).
+    /// `kitti`, `nuscenes`, `pcd`, `las`, `laz`, `copc`, `e57`; see [`Format::NAMES`]).
     pub fn from_name(name: &str) -> Option<Format> {
         match name.to_ascii_lowercase().as_str() {
             "ply" => Some(Format::Ply),
@@ -273,7 +281,9 @@ impl Format {
             "bin" | "kitti" => Some(Format::Kitti),
             "nuscenes" | "pcd.bin" => Some(Format::Nuscenes),
             "pcd" => Some(Format::Pcd),
-            "las" | "laz" => Some(Format::Las),
+            "las" => Some(Format::Las),
+            "laz" => Some(Format::Laz),
+            "copc" | "copc.laz" => Some(Format::Copc),
             "e57" => Some(Format::E57),
             _ => None,
         }
@@ -292,15 +302,22 @@ impl Format {
             Format::Bin(_) => "bin",
             Format::Pcd => "pcd",
             Format::Las => "las",
+            Format::Laz => "laz",
+            Format::Copc => "copc.laz",
             Format::E57 => "e57",
         }
     }
 
     /// The names [`Format::from_name`] accepts, for help texts.
     pub const NAMES: &'static [&'static str] = &[
-        "ply", "obj", "off", "xyz", "txt", "pts", "pcd", "las", "laz", "kitti", "bin", "nuscenes",
-        "e57",
+        "ply", "obj", "off", "xyz", "txt", "pts", "pcd", "las", "laz", "copc", "kitti", "bin",
+        "nuscenes", "e57",
     ];
+
+    /// LAS, LAZ or COPC: one reader, one point model.
+    pub fn is_las(self) -> bool {
+        matches!(self, Format::Las | Format::Laz | Format::Copc)
+    }
 
     /// The record layout of a raw `f32` format (KITTI, nuScenes, [`Format::Bin`]).
     pub fn bin_layout(self) -> Option<raw::BinLayout> {
@@ -477,7 +494,7 @@ pub fn open(path: &Path, format: Option<Format>) -> Result<Box<dyn Source>, IoEr
             Box::new(raw::RawSource::open_as(path, format)?)
         }
         Format::Pcd => Box::new(pcd::PcdSource::open(path)?),
-        Format::Las => Box::new(las::LasSource::open(path)?),
+        Format::Las | Format::Laz | Format::Copc => Box::new(las::LasSource::open(path)?),
         Format::E57 => Box::new(e57::E57Source::open(path)?),
     })
 }
@@ -572,9 +589,14 @@ pub fn create_with(
     };
     if options.noise_flag {
         let refuse = match format {
-            Format::Las | Format::Pcd | Format::Ply | Format::Xyz | Format::Pts | Format::E57 => {
-                None
-            }
+            Format::Las
+            | Format::Laz
+            | Format::Copc
+            | Format::Pcd
+            | Format::Ply
+            | Format::Xyz
+            | Format::Pts
+            | Format::E57 => None,
             Format::Kitti => Some(
                 "a KITTI .bin record has no room for a noise flag; use --outliers remove or \
                  another output format",
@@ -614,10 +636,9 @@ pub fn create_with(
             Box::new(raw::RawSink::create_as(path, format, like, count)?)
         }
         Format::Pcd => Box::new(pcd::PcdSink::create(path, like, count, options)?),
-        Format::Las if las::is_copc_path(path) => {
-            Box::new(las::CopcSink::create(path, like, count, options)?)
-        }
-        Format::Las => Box::new(las::LasSink::create(path, like, count, options)?),
+        Format::Copc => Box::new(las::CopcSink::create(path, like, count, options)?),
+        Format::Las => Box::new(las::LasSink::create_as(path, like, count, options, false)?),
+        Format::Laz => Box::new(las::LasSink::create_as(path, like, count, options, true)?),
         Format::E57 => Box::new(e57::E57Sink::create(path, like, count, options)?),
     })
 }

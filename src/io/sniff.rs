@@ -2,7 +2,7 @@
 //! uploads, request bodies).
 //!
 //! [`sniff`] looks at a prefix of the content ([`SNIFF_LEN`] bytes are plenty) and names the
-//! format by its canonical extension, or `None` when nothing matches:
+//! [`Format`], or `None` when nothing matches:
 //!
 //! | content | answer |
 //! |---|---|
@@ -18,25 +18,27 @@
 //! KITTI `.bin` scans are raw `f32` records with no signature: they are never sniffed and must be
 //! named explicitly. Sniffing only picks a reader; the reader itself then validates the file.
 
+use super::Format;
+
 /// How many leading bytes [`sniff`] needs at most.
 pub const SNIFF_LEN: usize = 4096;
 
 /// Byte offset of the point data record format in a LAS public header.
 const LAS_FORMAT_OFFSET: usize = 104;
 
-/// Names the format of content starting with `head` by its canonical extension (`ply`, `las`,
-/// `laz`, `e57`, `pcd`, `off`, `obj`, `pts`, `xyz`), or `None`.
-pub fn sniff(head: &[u8]) -> Option<&'static str> {
+/// The format of content starting with `head` (PLY, LAS, LAZ, E57, PCD in any of its three
+/// encodings, OFF, OBJ, PTS, XYZ), or `None`. A COPC file sniffs as the LAZ file it is.
+pub fn sniff(head: &[u8]) -> Option<Format> {
     if head.starts_with(b"ply\n") || head.starts_with(b"ply\r\n") {
-        return Some("ply");
+        return Some(Format::Ply);
     }
     if head.starts_with(super::e57::SIGNATURE) {
-        return Some("e57");
+        return Some(Format::E57);
     }
     if head.starts_with(b"LASF") {
         // Bit 7 (LASzip) or bit 6 (old LASzip) of the point data record format marks LAZ.
         let compressed = head.get(LAS_FORMAT_OFFSET).is_some_and(|f| f & 0xC0 != 0);
-        return Some(if compressed { "laz" } else { "las" });
+        return Some(if compressed { Format::Laz } else { Format::Las });
     }
     // A binary PCD body follows its text header: judge the header by its first line.
     let first_line = head.split(|&b| b == b'\n').next().unwrap_or_default();
@@ -44,7 +46,7 @@ pub fn sniff(head: &[u8]) -> Option<&'static str> {
         let line = line.trim();
         let keyword = line.split_whitespace().next().unwrap_or_default();
         if line.starts_with("# .PCD") || ["VERSION", "FIELDS"].contains(&keyword) {
-            return Some("pcd");
+            return Some(Format::Pcd);
         }
     }
     // Everything else is text: judge complete lines only (the last one may be cut off).
@@ -60,14 +62,14 @@ pub fn sniff(head: &[u8]) -> Option<&'static str> {
         .peekable();
     let first = *lines.peek()?;
     if first.starts_with("# .PCD") {
-        return Some("pcd");
+        return Some(Format::Pcd);
     }
     let keyword = first.split_whitespace().next()?.to_ascii_uppercase();
     const PCD: [&str; 9] = [
         "VERSION", "FIELDS", "COLUMNS", "SIZE", "TYPE", "COUNT", "WIDTH", "HEIGHT", "POINTS",
     ];
     if PCD.contains(&keyword.as_str()) {
-        return Some("pcd");
+        return Some(Format::Pcd);
     }
     if keyword.ends_with("OFF")
         && keyword
@@ -75,7 +77,7 @@ pub fn sniff(head: &[u8]) -> Option<&'static str> {
             .chars()
             .all(|c| matches!(c, 'C' | 'N' | 'S' | 'T'))
     {
-        return Some("off");
+        return Some(Format::Off);
     }
     // Drop comment lines (`#`, `//`) for the remaining text formats.
     let content: Vec<&str> = lines
@@ -96,7 +98,7 @@ pub fn sniff(head: &[u8]) -> Option<&'static str> {
             .iter()
             .any(|l| l.split_whitespace().next() == Some("v"))
     {
-        return Some("obj");
+        return Some(Format::Obj);
     }
     let numbers = |l: &str| -> Option<usize> {
         let fields: Vec<&str> = l
@@ -113,56 +115,54 @@ pub fn sniff(head: &[u8]) -> Option<&'static str> {
         !rest.is_empty() && rest.iter().all(|l| numbers(l).is_some_and(|n| n >= 3))
     };
     if first.parse::<u64>().is_ok() && rest_are_points(1) {
-        return Some("pts");
+        return Some(Format::Pts);
     }
     if rest_are_points(0) {
-        return Some("xyz");
+        return Some(Format::Xyz);
     }
     None
 }
 
-/// [`sniff`] as a [`Format`](super::Format) (LAS and LAZ are both [`Format::Las`](super::Format::Las)).
-pub fn sniff_format(head: &[u8]) -> Option<super::Format> {
-    sniff(head).and_then(super::Format::from_name)
-}
-
 #[cfg(test)]
 mod tests {
-    use super::{sniff, sniff_format};
+    use super::sniff;
     use crate::io::Format;
 
     #[test]
     fn formats_as_the_enum() {
-        assert_eq!(sniff_format(b"ply\nformat ascii 1.0\n"), Some(Format::Ply));
-        assert_eq!(sniff_format(b"0 0 0\n1 0 0\n0 1 0\n"), Some(Format::Xyz));
-        assert_eq!(sniff_format(b"hello\n"), None);
+        assert_eq!(sniff(b"ply\nformat ascii 1.0\n"), Some(Format::Ply));
+        assert_eq!(sniff(b"0 0 0\n1 0 0\n0 1 0\n"), Some(Format::Xyz));
+        assert_eq!(sniff(b"hello\n"), None);
         // Issue 12: a binary PCD body after the header.
         let mut pcd = b"# .PCD v0.7\nVERSION 0.7\nFIELDS x y z\nDATA binary\n".to_vec();
         pcd.extend_from_slice(&[0xff, 0xfe, 0x80, 0x81]);
         pcd.resize(super::SNIFF_LEN, 0x9f);
-        assert_eq!(sniff_format(&pcd), Some(Format::Pcd));
+        assert_eq!(sniff(&pcd), Some(Format::Pcd));
     }
 
     #[test]
     fn formats_by_content() {
-        assert_eq!(sniff(b"ply\nformat ascii 1.0\n"), Some("ply"));
-        assert_eq!(sniff(b"ASTM-E57\0\0\x01\0"), Some("e57"));
+        assert_eq!(sniff(b"ply\nformat ascii 1.0\n"), Some(Format::Ply));
+        assert_eq!(sniff(b"ASTM-E57\0\0\x01\0"), Some(Format::E57));
         let mut las = b"LASF".to_vec();
         las.resize(227, 0);
-        assert_eq!(sniff(&las), Some("las"));
+        assert_eq!(sniff(&las), Some(Format::Las));
         las[104] = 0x80 | 3;
-        assert_eq!(sniff(&las), Some("laz"));
-        assert_eq!(sniff(b"# .PCD v0.7\nVERSION 0.7\n"), Some("pcd"));
-        assert_eq!(sniff(b"VERSION 0.7\nFIELDS x y z\n"), Some("pcd"));
-        assert_eq!(sniff(b"OFF\n3 1 0\n0 0 0\n"), Some("off"));
-        assert_eq!(sniff(b"COFF 8 6 12\n"), Some("off"));
+        assert_eq!(sniff(&las), Some(Format::Laz));
+        assert_eq!(sniff(b"# .PCD v0.7\nVERSION 0.7\n"), Some(Format::Pcd));
+        assert_eq!(sniff(b"VERSION 0.7\nFIELDS x y z\n"), Some(Format::Pcd));
+        assert_eq!(sniff(b"OFF\n3 1 0\n0 0 0\n"), Some(Format::Off));
+        assert_eq!(sniff(b"COFF 8 6 12\n"), Some(Format::Off));
         assert_eq!(
             sniff(b"# made by hand\nv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n"),
-            Some("obj")
+            Some(Format::Obj)
         );
-        assert_eq!(sniff(b"3\n0 0 0 5\n1 0 0 5\n0 1 0 5\n"), Some("pts"));
-        assert_eq!(sniff(b"//X Y Z\n0,0,0\n1,0,0\n0,1,0.5\n"), Some("xyz"));
-        assert_eq!(sniff(b"0 0 0\n1 0 0\n0 1 0\n"), Some("xyz"));
+        assert_eq!(sniff(b"3\n0 0 0 5\n1 0 0 5\n0 1 0 5\n"), Some(Format::Pts));
+        assert_eq!(
+            sniff(b"//X Y Z\n0,0,0\n1,0,0\n0,1,0.5\n"),
+            Some(Format::Xyz)
+        );
+        assert_eq!(sniff(b"0 0 0\n1 0 0\n0 1 0\n"), Some(Format::Xyz));
     }
 
     #[test]

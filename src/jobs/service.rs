@@ -30,9 +30,10 @@ use super::metrics::Metrics;
 use super::progress::{JobProgress, ProgressView};
 use super::store::{JobRow, JobSpec, Status, Store, Upload};
 use super::{JobsError, bridge};
-use crate::denoise::{DenoiseError, Params};
 use crate::io::{Format, IoError};
-use crate::pipeline::{self, Job, NoProgress, OutlierMode, PipelineError, Report, RunOptions};
+use crate::pipeline::{
+    self, Job, NoProgress, OutlierMode, PipelineError, Report, RunOptions, SpecError, SpecOverlay,
+};
 
 /// What the service needs from the configuration.
 #[derive(Debug, Clone)]
@@ -65,7 +66,7 @@ impl Default for Settings {
             queue_capacity: 16,
             memory_budget: pipeline::DEFAULT_MEMORY_BUDGET,
             job_tile_points: 250_000,
-            outlier_alpha: 2.0,
+            outlier_alpha: crate::pipeline::DEFAULT_OUTLIER_ALPHA,
             max_upload_size: 16 << 30,
             sync_concurrency: 8,
             preview_points: super::preview::PREVIEW_POINTS,
@@ -87,12 +88,9 @@ pub struct FormatHint {
 pub struct JobRequest {
     /// The input upload's id.
     pub input: String,
-    /// Denoising parameters.
-    pub params: Params,
-    /// Outlier handling.
-    pub outliers: OutlierMode,
-    /// Outlier threshold (else the configured default).
-    pub outlier_alpha: Option<f64>,
+    /// The request's parameter choices (resolved and validated here, over the configured
+    /// outlier threshold).
+    pub spec: SpecOverlay,
     /// Output format (else the input's).
     pub output_format: Option<String>,
 }
@@ -102,12 +100,8 @@ pub struct JobRequest {
 pub struct SyncRequest {
     /// Input format (canonical extension).
     pub format: String,
-    /// Denoising parameters.
-    pub params: Params,
-    /// Outlier handling.
-    pub outliers: OutlierMode,
-    /// Outlier threshold (else the configured default).
-    pub outlier_alpha: Option<f64>,
+    /// The request's parameter choices.
+    pub spec: SpecOverlay,
     /// Output format (else the input's).
     pub output_format: Option<String>,
 }
@@ -245,35 +239,16 @@ fn client_fault(e: &PipelineError) -> bool {
     }
 }
 
-/// Maps a parameter error to the request field it names.
-pub(super) fn param_error(e: DenoiseError) -> JobsError {
-    match e {
-        DenoiseError::Param { name, detail } => JobsError::Invalid {
-            field: match name {
-                "outlier-alpha" => "outlier_alpha".into(),
-                "outliers" => "outliers".into(),
-                // CLI flags are kebab-case, JSON fields snake_case.
-                n => format!("params.{}", n.replace('-', "_")),
-            },
-            detail,
+/// Maps a spec error to the request field it names (`params.knn`; the outlier options may sit
+/// at the top level of a job, so they keep their bare names).
+pub(super) fn spec_error(e: SpecError) -> JobsError {
+    JobsError::Invalid {
+        field: match e.field {
+            f @ ("outliers" | "outlier_alpha") => f.to_string(),
+            f => format!("params.{f}"),
         },
-        other => JobsError::Invalid {
-            field: "params".into(),
-            detail: other.to_string(),
-        },
+        detail: e.detail,
     }
-}
-
-/// Checks what can be checked without the input file.
-fn validate_params(params: &Params, alpha: f64) -> Result<(), JobsError> {
-    params.validate().map_err(param_error)?;
-    if !(alpha.is_finite() && alpha >= 0.0) {
-        return Err(JobsError::Invalid {
-            field: "outlier_alpha".into(),
-            detail: format!("must be finite and ≥ 0, got {alpha}"),
-        });
-    }
-    Ok(())
 }
 
 /// Refuses output options a sink would refuse later (noise flags in KITTI, OBJ, OFF).
@@ -518,10 +493,10 @@ impl Jobs {
         if self.shutting_down() {
             return Err(JobsError::ShuttingDown);
         }
-        let alpha = req
-            .outlier_alpha
-            .unwrap_or(self.inner.settings.outlier_alpha);
-        validate_params(&req.params, alpha)?;
+        let spec = req
+            .spec
+            .resolve(self.inner.settings.outlier_alpha)
+            .map_err(spec_error)?;
         let upload = if valid_id(&req.input) {
             let (t, id) = (tenant.to_string(), req.input.clone());
             self.db(move |s| s.upload(Some(&t), &id)).await?
@@ -546,15 +521,15 @@ impl Jobs {
             });
         };
         let output = output_format_for(req.output_format.as_deref(), &input_format)?;
-        let mesh = req.params.mesh_mode(upload.faces.is_some());
-        if mesh && req.outliers != OutlierMode::Off {
+        let mesh = spec.params.mesh_mode(upload.faces.is_some());
+        if mesh && spec.outliers != OutlierMode::Off {
             return Err(JobsError::Invalid {
                 field: "outliers".into(),
                 detail: "applies to point clouds, not meshes (set params.knn for point mode)"
                     .into(),
             });
         }
-        validate_output(req.outliers, &output)?;
+        validate_output(spec.outliers, &output)?;
         let settings = &self.inner.settings;
         let tile_points = (!mesh && upload.points.is_none_or(|n| n > settings.job_tile_points))
             .then_some(settings.job_tile_points);
@@ -564,9 +539,7 @@ impl Jobs {
             upload: upload.id.clone(),
             status: Status::Accepted,
             spec: JobSpec {
-                params: req.params,
-                outliers: req.outliers,
-                outlier_alpha: alpha,
+                denoise: spec,
                 output_format: output,
                 memory_budget: settings.memory_budget,
                 tile_points,
@@ -875,9 +848,7 @@ impl Jobs {
             output: output.to_path_buf(),
             input_format: format_of(&input.1).ok(),
             output_format: format_of(&spec.output_format).ok(),
-            params: spec.params.clone(),
-            outliers: spec.outliers,
-            outlier_alpha: spec.outlier_alpha,
+            spec: spec.denoise.clone(),
         };
         let opts = RunOptions {
             memory_budget: spec.memory_budget,
@@ -1018,15 +989,15 @@ impl Jobs {
             .sync_slots
             .try_acquire()
             .map_err(|_| JobsError::Busy)?;
-        let alpha = req
-            .outlier_alpha
-            .unwrap_or(self.inner.settings.outlier_alpha);
-        validate_params(&req.params, alpha)?;
+        let spec = req
+            .spec
+            .resolve(self.inner.settings.outlier_alpha)
+            .map_err(spec_error)?;
         let input_format = canonical_format(&req.format).ok_or_else(|| {
             JobsError::UnsupportedFormat(format!("unknown format `{}`", req.format))
         })?;
         let output_format = output_format_for(req.output_format.as_deref(), &input_format)?;
-        validate_output(req.outliers, &output_format)?;
+        validate_output(spec.outliers, &output_format)?;
         let cancel = Arc::new(AtomicBool::new(false));
         // Dropped when the client goes away before the answer: the run stops at its next check.
         struct CancelOnDrop(Arc<AtomicBool>);
@@ -1059,9 +1030,7 @@ impl Jobs {
                 output: output.clone(),
                 input_format: format_of(&input_format).ok(),
                 output_format: format_of(&output_format).ok(),
-                params: req.params,
-                outliers: req.outliers,
-                outlier_alpha: alpha,
+                spec,
             };
             let opts = RunOptions {
                 memory_budget: budget,
@@ -1083,7 +1052,7 @@ impl Jobs {
                         report,
                     })
                 }
-                Err(PipelineError::Params(e)) => Err(param_error(e)),
+                Err(PipelineError::Params(e)) => Err(spec_error(e)),
                 Err(e) if client_fault(&e) => Err(JobsError::BadContent(scrub(
                     &e.to_string(),
                     &input,
@@ -1182,15 +1151,18 @@ mod tests {
 
     #[test]
     fn parameter_errors_name_fields() {
-        let p = Params {
+        let resolve = |o: SpecOverlay| o.resolve(2.0).map_err(spec_error);
+        match resolve(SpecOverlay {
             knn: Some(1),
-            ..Params::default()
-        };
-        match validate_params(&p, 2.0) {
+            ..SpecOverlay::default()
+        }) {
             Err(JobsError::Invalid { field, .. }) => assert_eq!(field, "params.knn"),
             other => panic!("{other:?}"),
         }
-        match validate_params(&Params::default(), -1.0) {
+        match resolve(SpecOverlay {
+            outlier_alpha: Some(-1.0),
+            ..SpecOverlay::default()
+        }) {
             Err(JobsError::Invalid { field, .. }) => assert_eq!(field, "outlier_alpha"),
             other => panic!("{other:?}"),
         }

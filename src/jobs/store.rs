@@ -21,8 +21,7 @@ use std::sync::Mutex;
 use rusqlite::{Connection, OptionalExtension, Row, params};
 
 use super::JobsError;
-use crate::denoise::Params;
-use crate::pipeline::{OutlierMode, Report};
+use crate::pipeline::{DenoiseSpec, Report};
 
 /// The status of a job, as OGC API – Processes names it.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
@@ -100,12 +99,9 @@ pub struct Upload {
 /// (even with another configuration) resumes the same plan.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct JobSpec {
-    /// Denoising parameters.
-    pub params: Params,
-    /// Outlier handling.
-    pub outliers: OutlierMode,
-    /// Outlier threshold.
-    pub outlier_alpha: f64,
+    /// What the run computes (stored flat, as `params`, `outliers` and `outlier_alpha`).
+    #[serde(flatten)]
+    pub denoise: DenoiseSpec,
     /// Output extension (`ply`, `las`, `laz`, …).
     pub output_format: String,
     /// Memory budget of the run.
@@ -619,9 +615,7 @@ mod tests {
             upload: "u1".into(),
             status: Status::Accepted,
             spec: JobSpec {
-                params: Params::default(),
-                outliers: OutlierMode::Off,
-                outlier_alpha: 2.0,
+                denoise: DenoiseSpec::default(),
                 output_format: "ply".into(),
                 memory_budget: 1 << 30,
                 tile_points: Some(5000),

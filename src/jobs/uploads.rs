@@ -98,12 +98,10 @@ fn inspect(
     f.take(SNIFF_LEN as u64)
         .read_to_end(&mut head)
         .map_err(|e| JobsError::io("read an upload", e))?;
-    let sniffed = sniff(&head);
+    let sniffed = sniff(&head).map(crate::io::Format::name);
     let ext = match (declared, sniffed) {
         // LAS and LAZ share a name; the header says which it is.
-        (Some(d), Some(s)) if format_of(&d)? == crate::io::Format::Las && s.starts_with("la") => {
-            s.to_string()
-        }
+        (Some(d), Some(s)) if format_of(&d)?.is_las() && s.starts_with("la") => s.to_string(),
         (Some(d), _) => d,
         (None, Some(s)) => s.to_string(),
         (None, None) => {

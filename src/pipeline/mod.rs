@@ -31,9 +31,11 @@
 
 mod normals;
 mod progress;
+mod spec;
 
 pub use normals::NormalsAction;
 pub use progress::{BarProgress, LogProgress, NoProgress, Progress};
+pub use spec::{DEFAULT_OUTLIER_ALPHA, DenoiseSpec, SpecError, SpecOverlay, validate_alpha};
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -72,7 +74,7 @@ pub enum PipelineError {
     },
     /// Parameters are invalid (checked before any I/O).
     #[error(transparent)]
-    Params(DenoiseError),
+    Params(SpecError),
     /// The output path names the input file.
     #[error("{path}: refusing to overwrite the input file", path = .path.display())]
     SameFile {
@@ -131,6 +133,7 @@ impl PipelineError {
 /// What to do with statistical outliers: points whose mean distance to their k-NN list is above
 /// `mean + alpha·σ` of that statistic over the whole cloud.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize, Default)]
+#[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
 #[serde(rename_all = "lowercase")]
 pub enum OutlierMode {
     /// Leave them.
@@ -153,25 +156,19 @@ pub struct Job {
     pub input_format: Option<Format>,
     /// Output format (else from the extension).
     pub output_format: Option<Format>,
-    /// Denoising parameters.
-    pub params: Params,
-    /// Outlier handling.
-    pub outliers: OutlierMode,
-    /// Outlier threshold in standard deviations above the mean.
-    pub outlier_alpha: f64,
+    /// What the run computes.
+    pub spec: DenoiseSpec,
 }
 
 impl Job {
-    /// A job with default parameters and no outlier handling.
+    /// A job with the default spec (no outlier handling).
     pub fn new(input: impl Into<PathBuf>, output: impl Into<PathBuf>) -> Job {
         Job {
             input: input.into(),
             output: output.into(),
             input_format: None,
             output_format: None,
-            params: Params::default(),
-            outliers: OutlierMode::Off,
-            outlier_alpha: 1.0,
+            spec: DenoiseSpec::default(),
         }
     }
 }
@@ -341,13 +338,7 @@ fn threshold(sum: &ExactSum, sq: &ExactSum, alpha: f64) -> f64 {
 /// Bad parameters (before any I/O), unreadable or malformed input, too few points, an unusable
 /// temporary directory, cancellation, write failures.
 pub fn run(job: &Job, opts: &RunOptions) -> Result<Report, PipelineError> {
-    job.params.validate().map_err(PipelineError::Params)?;
-    if !(job.outlier_alpha.is_finite() && job.outlier_alpha >= 0.0) {
-        return Err(PipelineError::Params(DenoiseError::Param {
-            name: "outlier-alpha",
-            detail: format!("must be finite and ≥ 0, got {}", job.outlier_alpha),
-        }));
-    }
+    job.spec.validate().map_err(PipelineError::Params)?;
     if let Some(t) = &opts.temp_dir
         && !t.is_dir()
     {
@@ -383,16 +374,16 @@ fn run_file(job: &Job, opts: &RunOptions) -> Result<Report, PipelineError> {
     let source = io::open(&job.input, job.input_format)?;
     let info = source.info().clone();
     drop(source);
-    let mut report = if job.params.mesh_mode(info.has_faces()) {
-        if job.outliers != OutlierMode::Off {
-            return Err(PipelineError::Params(DenoiseError::Param {
-                name: "outliers",
+    let mut report = if job.spec.params.mesh_mode(info.has_faces()) {
+        if job.spec.outliers != OutlierMode::Off {
+            return Err(PipelineError::Params(SpecError {
+                field: "outliers",
                 detail: "applies to point clouds, not meshes".into(),
             }));
         }
         run_mesh(job)?
     } else {
-        let per_point = bytes_per_point(&job.params, info.schema.record_len);
+        let per_point = bytes_per_point(&job.spec.params, info.schema.record_len);
         let fits = info
             .len
             .is_some_and(|n| n.saturating_mul(per_point) <= opts.memory_budget);
@@ -413,8 +404,8 @@ fn empty_report(job: &Job, mode: &str) -> Report {
         input: job.input.clone(),
         output: job.output.clone(),
         mode: mode.into(),
-        params: job.params.clone(),
-        outliers: job.outliers,
+        params: job.spec.params.clone(),
+        outliers: job.spec.outliers,
         points_in: 0,
         points_out: 0,
         faces: 0,
@@ -440,7 +431,7 @@ fn run_mesh(job: &Job) -> Result<Report, PipelineError> {
     let mut timer = Timer::start();
     let mut cloud = Cloud::read(&job.input, job.input_format)?;
     timer.lap("read", &mut phases);
-    let out = denoise::denoise(&cloud.positions, cloud.faces(), &job.params)
+    let out = denoise::denoise(&cloud.positions, cloud.faces(), &job.spec.params)
         .map_err(|e| denoise_error(&job.input, e))?;
     let mut stats = out.stats;
     phases.merge(&Stats {
@@ -542,7 +533,7 @@ impl Assembler {
 
 fn sink_options(job: &Job, opts: &RunOptions) -> SinkOptions {
     SinkOptions {
-        noise_flag: job.outliers == OutlierMode::Classify,
+        noise_flag: job.spec.outliers == OutlierMode::Classify,
         temp_dir: opts.temp_dir.clone(),
     }
 }
@@ -606,13 +597,13 @@ fn run_points_in_memory(job: &Job, opts: &RunOptions) -> Result<Report, Pipeline
         ties: &ties,
         origin,
         region: None,
-        isolation: crate::denoise::isolation::of_cloud(&pts, &ties, origin, job.params.k()),
+        isolation: crate::denoise::isolation::of_cloud(&pts, &ties, origin, job.spec.params.k()),
         complete: None,
     };
     opts.progress.phase("denoise", 1);
-    let globals = if cloud::needs_globals(&job.params) {
+    let globals = if cloud::needs_globals(&job.spec.params) {
         with_cancel(&opts.cancel, || {
-            cloud::globals_partial(&run, &job.params, |_| true)
+            cloud::globals_partial(&run, &job.spec.params, |_| true)
         })
         .map_err(denoise_err)?
         .0
@@ -620,8 +611,10 @@ fn run_points_in_memory(job: &Job, opts: &RunOptions) -> Result<Report, Pipeline
     } else {
         Globals::default()
     };
-    let result = with_cancel(&opts.cancel, || cloud::run(&run, &job.params, &globals))
-        .map_err(denoise_err)?;
+    let result = with_cancel(&opts.cancel, || {
+        cloud::run(&run, &job.spec.params, &globals)
+    })
+    .map_err(denoise_err)?;
     let mut stats = Stats::default();
     result.book(&pts, |_| true, &mut stats);
     stats.points = cloud.len() as u64;
@@ -640,8 +633,8 @@ fn run_points_in_memory(job: &Job, opts: &RunOptions) -> Result<Report, Pipeline
     );
     let asm = Assembler::new(
         &cloud.info,
-        job.outliers,
-        threshold(&sum, &sq, job.outlier_alpha),
+        job.spec.outliers,
+        threshold(&sum, &sq, job.spec.outlier_alpha),
     );
     let mut by_index: Vec<Option<(DVec3, f64)>> = vec![None; cloud.len()];
     for (j, &i) in finite.iter().enumerate() {
@@ -926,12 +919,12 @@ fn run_tiled(
             error: DenoiseError::AllIdentical(planner.finite() as usize),
         });
     }
-    if planner.finite() < job.params.k() as u64 {
+    if planner.finite() < job.spec.params.k() as u64 {
         return Err(PipelineError::Denoise {
             path: job.input.clone(),
             error: DenoiseError::Neighbours(crate::neighbours::NeighboursError::TooFewPoints {
                 points: planner.finite() as usize,
-                k: job.params.k(),
+                k: job.spec.params.k(),
             }),
         });
     }
@@ -949,8 +942,8 @@ fn run_tiled(
     let plan = planner.finish_within(
         target,
         max_points,
-        job.params.k(),
-        cloud::reach(&job.params),
+        job.spec.params.k(),
+        cloud::reach(&job.spec.params),
     );
     timer.lap("plan", &mut phases);
 
@@ -1005,7 +998,7 @@ fn run_tiled(
 
     // Global scalars, when the method needs them: a pre-pass over the tiles.
     let globals_path = dir.path().join("globals.json");
-    let globals = if !cloud::needs_globals(&job.params) {
+    let globals = if !cloud::needs_globals(&job.spec.params) {
         Globals::default()
     } else if let Some(g) = resume
         .then(|| load_json::<Globals>(&globals_path))
@@ -1018,7 +1011,7 @@ fn run_tiled(
         for t in 0..plan.tiles.len() {
             cancelled(opts)?;
             let partial = with_cancel(&opts.cancel, || {
-                tiling::globals_of_tile(dir.path(), &plan, &budget, t, &job.params)
+                tiling::globals_of_tile(dir.path(), &plan, &budget, t, &job.spec.params)
             });
             sum.merge(&partial.map_err(tiling_err)?);
             opts.progress.advance(t as u64 + 1);
@@ -1073,7 +1066,7 @@ fn run_tiled(
             let (path, plan) = (dir.path(), &plan);
             let reader = following.map(|n| s.spawn(move || tiling::load_tile(path, plan, n)));
             let o = with_cancel(&opts.cancel, || {
-                tiling::process_tile(path, plan, &budget, t, &job.params, &globals, pts)
+                tiling::process_tile(path, plan, &budget, t, &job.spec.params, &globals, pts)
             });
             let next = reader.map(|h| h.join().expect("the spill reader does not panic"));
             (o, next)
@@ -1092,8 +1085,12 @@ fn run_tiled(
     let kernel = std::mem::take(&mut stats.phases);
 
     // Pass 4: stitch.
-    let asm = Assembler::new(info, job.outliers, threshold(&sum, &sq, job.outlier_alpha));
-    let removed = if job.outliers == OutlierMode::Remove {
+    let asm = Assembler::new(
+        info,
+        job.spec.outliers,
+        threshold(&sum, &sq, job.spec.outlier_alpha),
+    );
+    let removed = if job.spec.outliers == OutlierMode::Remove {
         let mut merge = ResultMerge::open(dir.path(), plan.tiles.len()).map_err(tiling_err)?;
         let mut n = 0u64;
         while let Some(r) = merge.next_result().map_err(tiling_err)? {

@@ -130,8 +130,8 @@ impl CopcSink {
             .tempdir_in(dir)
             .map_err(|e| IoError::io(path, e))?;
         let points = scratch.path().join(SCRATCH_NAME);
-        let inner =
-            LasSink::create(&points, like, count, options).map_err(|e| retarget(e, path))?;
+        let inner = LasSink::create_as(&points, like, count, options, false)
+            .map_err(|e| retarget(e, path))?;
         Ok(CopcSink {
             inner: Some(Box::new(inner)),
             scratch,

@@ -133,13 +133,6 @@ const LASZIP_USER: &str = "laszip encoded";
 /// Record id of the LASzip VLR.
 const LASZIP_RECORD: u16 = 22204;
 
-/// True when `path` names a COPC file (`*.copc.laz`, case-insensitive).
-pub fn is_copc_path(path: &Path) -> bool {
-    path.file_name()
-        .and_then(|n| n.to_str())
-        .is_some_and(|n| n.to_ascii_lowercase().ends_with(".copc.laz"))
-}
-
 /// One VLR (54-byte header) or EVLR (60-byte header), kept as raw bytes.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct LasVlr {

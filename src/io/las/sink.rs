@@ -13,7 +13,9 @@ use super::layout::{
 };
 use super::{LASZIP_RECORD, LASZIP_USER, LAZ_CHUNK_SIZE, LasMeta, LasVlr, Piece, laz_error};
 use crate::io::text::{Tally, check_batch};
-use crate::io::{AtomicFile, Extras, IoError, Meta, Sink, SinkOptions, SourceInfo, Trailer};
+use crate::io::{
+    AtomicFile, Extras, Format, IoError, Meta, Sink, SinkOptions, SourceInfo, Trailer,
+};
 use crate::points::{Endian, FLAG_NOISE, PointBatch, Schema};
 
 /// Where the points go: straight to the file, or through a LAZ compressor.
@@ -196,30 +198,40 @@ fn quantise(v: f64, scale: f64, offset: f64) -> Option<i32> {
 
 impl LasSink {
     /// Creates a sink that writes `count` points laid out like `like`; see the module docs for what
-    /// is kept and how a non-LAS source is written. `.laz` in `path` means compressed output.
+    /// is kept and how a non-LAS source is written. `.laz` in `path` means compressed output,
+    /// `.las` uncompressed, anything else as the source was.
     ///
     /// # Errors
-    /// The directory is not writable; more than 2³²−1 points for a LAS version below 1.4; a point
-    /// format `laz` cannot compress.
+    /// As [`LasSink::create_as`].
     pub fn create(
         path: &Path,
         like: &SourceInfo,
         count: u64,
         options: &SinkOptions,
     ) -> Result<LasSink, IoError> {
+        let compress = match Format::from_path(path) {
+            Ok(Format::Laz) => true,
+            Ok(Format::Las) => false,
+            _ => matches!(&like.meta, Meta::Las(m) if m.compressed),
+        };
+        Self::create_as(path, like, count, options, compress)
+    }
+
+    /// [`LasSink::create`], compressed (LAZ) or not as `compress` says, whatever the path.
+    ///
+    /// # Errors
+    /// The directory is not writable; more than 2³²−1 points for a LAS version below 1.4; a point
+    /// format `laz` cannot compress.
+    pub fn create_as(
+        path: &Path,
+        like: &SourceInfo,
+        count: u64,
+        options: &SinkOptions,
+        compress: bool,
+    ) -> Result<LasSink, IoError> {
         let source = match &like.meta {
             Meta::Las(m) if m.record_len == like.schema.record_len => Some(m),
             _ => None,
-        };
-        let compress = match path
-            .extension()
-            .and_then(|e| e.to_str())
-            .map(str::to_ascii_lowercase)
-            .as_deref()
-        {
-            Some("laz") => true,
-            Some("las") => false,
-            _ => source.is_some_and(|m| m.compressed),
         };
         let Plan {
             mut header,

@@ -256,7 +256,8 @@ impl LasSource {
         Ok(LasSource {
             info: SourceInfo {
                 path: path.to_path_buf(),
-                format: Format::Las,
+                // A COPC file is a LAZ file to a reader.
+                format: if compressed { Format::Laz } else { Format::Las },
                 schema,
                 len: Some(count),
                 faces: None,
