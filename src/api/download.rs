@@ -110,7 +110,7 @@ pub async fn result(
     if text(header::IF_NONE_MATCH).is_some_and(|v| matches_etag(v, &etag)) {
         return Ok((StatusCode::NOT_MODIFIED, common).into_response());
     }
-    put(header::CONTENT_TYPE, media_type_of(&r.format).into());
+    put(header::CONTENT_TYPE, media_type_of(r.format).into());
     put(
         header::CONTENT_DISPOSITION,
         format!("attachment; filename=\"{id}.{}\"", r.format),

@@ -25,6 +25,7 @@ use super::auth::Tenant;
 use super::uploads::parse_query;
 use super::{ApiError, AppState, media_type, read_limited, timestamp};
 use crate::denoise::Method;
+use crate::io::Format;
 use crate::jobs::{JobInfo, JobRequest, Status};
 use crate::pipeline::{OutlierMode, SpecOverlay};
 
@@ -70,7 +71,7 @@ struct Submission {
     params: Option<Map<String, Value>>,
     outliers: Option<OutlierMode>,
     outlier_alpha: Option<f64>,
-    output_format: Option<String>,
+    output_format: Option<Format>,
 }
 
 /// The parameter choices of a request: the `params` object (the spec's names, [`SpecOverlay`])

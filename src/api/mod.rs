@@ -48,6 +48,7 @@ use tracing::Level;
 
 pub use error::ApiError;
 
+use crate::io::Format;
 use crate::jobs::Jobs;
 
 /// The OpenAPI document (the wire contract), embedded.
@@ -193,14 +194,14 @@ pub(crate) fn media_type(headers: &HeaderMap) -> Option<String> {
 
 /// The format a scan's content type names: `Some(None)` for generic binary or text (sniff the
 /// content), `Some(Some(ext))` for a format's own type, `None` for anything else (refused).
-pub(crate) fn format_of_media_type(headers: &HeaderMap) -> Option<Option<&'static str>> {
+pub(crate) fn format_of_media_type(headers: &HeaderMap) -> Option<Option<Format>> {
     match media_type(headers).as_deref() {
         None | Some("application/octet-stream") | Some("text/plain") => Some(None),
-        Some("application/vnd.las") => Some(Some("las")),
-        Some("application/vnd.laszip") => Some(Some("laz")),
-        Some("application/x-ply") | Some("model/x-ply") => Some(Some("ply")),
-        Some("application/x-pcd") => Some(Some("pcd")),
-        Some("model/obj") => Some(Some("obj")),
+        Some("application/vnd.las") => Some(Some(Format::Las)),
+        Some("application/vnd.laszip") => Some(Some(Format::Laz)),
+        Some("application/x-ply") | Some("model/x-ply") => Some(Some(Format::Ply)),
+        Some("application/x-pcd") => Some(Some(Format::Pcd)),
+        Some("model/obj") => Some(Some(Format::Obj)),
         _ => None,
     }
 }
@@ -238,12 +239,12 @@ pub(crate) async fn read_limited(
 }
 
 /// The media type a result is served with.
-pub(crate) fn media_type_of(ext: &str) -> &'static str {
-    match ext {
-        "las" => "application/vnd.las",
-        "laz" => "application/vnd.laszip",
-        "obj" => "model/obj",
-        "xyz" | "txt" | "pts" | "off" => "text/plain",
+pub(crate) fn media_type_of(format: Format) -> &'static str {
+    match format {
+        Format::Las => "application/vnd.las",
+        Format::Laz | Format::Copc => "application/vnd.laszip",
+        Format::Obj => "model/obj",
+        Format::Xyz | Format::Pts | Format::Off => "text/plain",
         _ => "application/octet-stream",
     }
 }

@@ -305,7 +305,7 @@ mod tests {
         let meta = crate::jobs::preview::build(
             &small,
             (&input, "ply"),
-            (&res.path, &res.format),
+            (&res.path, res.format.name()),
             &report,
             500,
         )
@@ -316,7 +316,7 @@ mod tests {
         crate::jobs::preview::build(
             &again,
             (&input, "ply"),
-            (&res.path, &res.format),
+            (&res.path, res.format.name()),
             &report,
             500,
         )

@@ -12,8 +12,9 @@
 use super::auth::Tenant;
 use super::jobs::field_of;
 use super::{ApiError, AppState, format_of_media_type, media_type, media_type_of, read_limited};
+use crate::io::Format;
 use crate::io::sniff::{SNIFF_LEN, sniff};
-use crate::jobs::{SyncRequest, canonical_format};
+use crate::jobs::SyncRequest;
 use crate::pipeline::SpecOverlay;
 use axum::Extension;
 use axum::body::Body;
@@ -79,19 +80,24 @@ pub async fn denoise(
         ))
     })?;
     let bytes = read_limited(&headers, body, state.settings.max_sync_size).await?;
-    let format = match format.or(from_type.map(str::to_string)) {
-        Some(f) => canonical_format(&f).ok_or_else(|| {
-            ApiError::UnsupportedMediaType(format!(
-                "unknown format `{f}` (expected ply, obj, off, xyz, txt, pts, bin, pcd, las or laz)"
-            ))
-        })?,
-        None => sniff(&bytes[..bytes.len().min(SNIFF_LEN)])
-            .map(|f| f.name().to_string())
-            .ok_or_else(|| {
+    let output_format = match output_format {
+        Some(name) => Some(
+            Format::from_name(&name)
+                .ok_or_else(|| ApiError::invalid("output_format", Format::unknown(&name)))?,
+        ),
+        None => None,
+    };
+    let format = match format {
+        Some(name) => Format::from_name(&name)
+            .ok_or_else(|| ApiError::UnsupportedMediaType(Format::unknown(&name)))?,
+        None => match from_type {
+            Some(f) => f,
+            None => sniff(&bytes[..bytes.len().min(SNIFF_LEN)]).ok_or_else(|| {
                 ApiError::UnsupportedMediaType(
                     "cannot tell the format from the content; name it with ?format=".into(),
                 )
             })?,
+        },
     };
     let out = state
         .jobs
@@ -119,11 +125,11 @@ pub async fn denoise(
     let h = r.headers_mut();
     h.insert(
         header::CONTENT_TYPE,
-        HeaderValue::from_static(media_type_of(&out.format)),
+        HeaderValue::from_static(media_type_of(out.format)),
     );
     let report = &out.report;
     for (name, value) in [
-        ("x-qemd-format", out.format.clone()),
+        ("x-qemd-format", out.format.to_string()),
         ("x-qemd-points-in", report.points_in.to_string()),
         ("x-qemd-points-out", report.points_out.to_string()),
         ("x-qemd-moved", report.stats.moved.to_string()),

@@ -211,6 +211,64 @@ fn ply(n: usize) -> Vec<u8> {
     b
 }
 
+/// The cloud of [`ply`] as PCL writes it by default: `binary_compressed` (LZF over the
+/// column-major fields).
+fn compressed_pcd(n: usize) -> Vec<u8> {
+    let body = ply(n);
+    let start = body.len() - n * 12;
+    let mut columns = Vec::with_capacity(n * 12);
+    for c in 0..3 {
+        for i in 0..n {
+            let at = start + i * 12 + c * 4;
+            columns.extend_from_slice(&body[at..at + 4]);
+        }
+    }
+    let packed = lzf::compress(&columns).unwrap();
+    let mut b = format!(
+        "# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\n\
+         TYPE F F F\nCOUNT 1 1 1\nWIDTH {n}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\n\
+         DATA binary_compressed\n"
+    )
+    .into_bytes();
+    b.extend_from_slice(&(packed.len() as u32).to_le_bytes());
+    b.extend_from_slice(&(columns.len() as u32).to_le_bytes());
+    b.extend_from_slice(&packed);
+    b
+}
+
+#[tokio::test]
+async fn issue10_the_service_tells_compressed_pcd_by_content() {
+    // PCL's default encoding used to get 415 "cannot tell the format from the content".
+    let dir = tempfile::tempdir().unwrap();
+    let app = router(state(dir.path(), &[]).await);
+    let data = compressed_pcd(1200);
+    let (status, headers, body) = send(
+        &app,
+        Request::post("/v1/denoise?knn=8")
+            .body(Body::from(data.clone()))
+            .unwrap(),
+    )
+    .await;
+    assert_eq!(status, StatusCode::OK, "{}", String::from_utf8_lossy(&body));
+    assert_eq!(headers["x-qemd-format"], "pcd");
+    assert_eq!(headers["x-qemd-points-in"], "1200");
+    assert!(body.starts_with(b"# .PCD"));
+    let (status, _, body) = send(
+        &app,
+        Request::post("/v1/uploads").body(Body::from(data)).unwrap(),
+    )
+    .await;
+    assert_eq!(
+        status,
+        StatusCode::CREATED,
+        "{}",
+        String::from_utf8_lossy(&body)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&body).unwrap();
+    assert_eq!(v["format"], "pcd");
+    assert_eq!(v["points"], 1200);
+}
+
 #[tokio::test]
 async fn uploads_whole_and_resumable_agree() {
     let dir = tempfile::tempdir().unwrap();

@@ -185,7 +185,7 @@ pub async fn create(
         hint.filename = q.filename;
     }
     if hint.format.is_none() {
-        hint.format = from_type.map(str::to_string);
+        hint.format = from_type.map(|f| f.name().to_string());
     }
     crate::jobs::check_hint(&hint)?;
     let content_length = header_u64(&headers, "content-length")?;

@@ -204,9 +204,11 @@ impl IoError {
     }
 }
 
-/// The supported file formats.
+/// The supported file formats. Serialised as [`Format::name`] (a job's stored output format,
+/// an upload's format); a [`Format::Bin`] layout does not travel that way (`bin` reads back as
+/// KITTI), which the service never needs: it only takes named formats.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
-#[serde(rename_all = "lowercase")]
+#[serde(into = "String", try_from = "String")]
 #[non_exhaustive]
 pub enum Format {
     /// Stanford PLY (ascii, binary little- and big-endian).
@@ -314,6 +316,14 @@ impl Format {
         "nuscenes", "e57",
     ];
 
+    /// The message for a name [`Format::from_name`] does not know, listing those it does.
+    pub fn unknown(name: &str) -> String {
+        format!(
+            "unknown format `{name}` (expected one of {})",
+            Format::NAMES.join(", ")
+        )
+    }
+
     /// LAS, LAZ or COPC: one reader, one point model.
     pub fn is_las(self) -> bool {
         matches!(self, Format::Las | Format::Laz | Format::Copc)
@@ -327,6 +337,25 @@ impl Format {
             Format::Bin(l) => Some(l),
             _ => None,
         }
+    }
+}
+
+impl From<Format> for String {
+    fn from(f: Format) -> String {
+        f.name().to_string()
+    }
+}
+
+impl TryFrom<String> for Format {
+    type Error = String;
+    fn try_from(name: String) -> Result<Format, String> {
+        Format::from_name(&name).ok_or_else(|| Format::unknown(&name))
+    }
+}
+
+impl std::fmt::Display for Format {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
     }
 }
 

@@ -42,7 +42,7 @@ mod uploads;
 
 pub use service::{
     FormatHint, JobInfo, JobRequest, Jobs, ResultFile, Settings, SyncOutput, SyncRequest,
-    canonical_format, output_format_for,
+    canonical_format,
 };
 pub use store::{JobRow, JobSpec, Status, Upload};
 pub use uploads::{DRAIN_MAX, check_hint, discard};

@@ -537,11 +537,12 @@ impl Jobs {
         if let Some(meta) = read_meta(&dir, cap).await {
             return Ok(files(meta));
         }
-        let (d, rp, rf) = (dir.clone(), result.path.clone(), result.format.clone());
+        let (d, rp, rf) = (dir.clone(), result.path.clone(), result.format);
         let started = std::time::Instant::now();
-        let meta =
-            bridge::blocking(move || build(&d, (&in_path, &in_ext), (&rp, &rf), &report, cap))
-                .await??;
+        let meta = bridge::blocking(move || {
+            build(&d, (&in_path, &in_ext), (&rp, rf.name()), &report, cap)
+        })
+        .await??;
         // A job dismissed while its preview was built has lost its directory: answer as for any
         // dismissed job.
         let again = self.job(tenant, id).await?;

@@ -92,18 +92,18 @@ pub struct JobRequest {
     /// outlier threshold).
     pub spec: SpecOverlay,
     /// Output format (else the input's).
-    pub output_format: Option<String>,
+    pub output_format: Option<Format>,
 }
 
 /// A synchronous request.
 #[derive(Debug, Clone)]
 pub struct SyncRequest {
-    /// Input format (canonical extension).
-    pub format: String,
+    /// Input format.
+    pub format: Format,
     /// The request's parameter choices.
     pub spec: SpecOverlay,
     /// Output format (else the input's).
-    pub output_format: Option<String>,
+    pub output_format: Option<Format>,
 }
 
 /// The answer of a synchronous request.
@@ -111,8 +111,8 @@ pub struct SyncRequest {
 pub struct SyncOutput {
     /// The denoised file.
     pub bytes: Vec<u8>,
-    /// Its format (extension).
-    pub format: String,
+    /// Its format.
+    pub format: Format,
     /// What the run did (paths replaced by `input` and `result`).
     pub report: Report,
 }
@@ -135,37 +135,16 @@ pub struct ResultFile {
     pub size: u64,
     /// SHA-256 (hex): the strong ETag.
     pub sha256: String,
-    /// Format (extension).
-    pub format: String,
+    /// Format.
+    pub format: Format,
     /// When the job finished, ms since the Unix epoch.
     pub finished_ms: i64,
 }
 
-/// The canonical extension for a format name (`kitti` → `bin`), `None` when unknown.
+/// The canonical extension for a format name (`kitti` → `bin`, `txt` → `xyz`), `None` when
+/// unknown.
 pub fn canonical_format(name: &str) -> Option<String> {
-    let lower = name.trim().to_ascii_lowercase();
-    let f = Format::from_name(&lower)?;
-    Some(match f {
-        Format::Kitti => "bin".to_string(),
-        Format::Nuscenes => "pcd.bin".to_string(),
-        _ => lower,
-    })
-}
-
-/// The output extension of a job: the requested one, else the input's.
-///
-/// # Errors
-/// [`JobsError::Invalid`] for an unknown format.
-pub fn output_format_for(requested: Option<&str>, input: &str) -> Result<String, JobsError> {
-    match requested {
-        None => Ok(input.to_string()),
-        Some(name) => canonical_format(name).ok_or_else(|| JobsError::Invalid {
-            field: "output_format".into(),
-            detail: format!(
-                "unknown format `{name}` (expected ply, obj, off, xyz, txt, pts, bin, pcd, las or laz)"
-            ),
-        }),
-    }
+    Format::from_name(name.trim()).map(|f| f.name().to_string())
 }
 
 /// The pipeline's format for an extension the service produced (always known).
@@ -252,8 +231,8 @@ pub(super) fn spec_error(e: SpecError) -> JobsError {
 }
 
 /// Refuses output options a sink would refuse later (noise flags in KITTI, OBJ, OFF).
-fn validate_output(outliers: OutlierMode, output: &str) -> Result<(), JobsError> {
-    let f = format_of(output)?;
+fn validate_output(outliers: OutlierMode, f: Format) -> Result<(), JobsError> {
+    let output = f.name();
     if outliers == OutlierMode::Classify
         && matches!(
             f,
@@ -509,7 +488,7 @@ impl Jobs {
                 detail: format!("no upload with id `{}`", req.input),
             });
         };
-        let Some(input_format) = upload.format.clone().filter(|_| upload.complete) else {
+        let Some(input_format) = upload.format.as_deref().filter(|_| upload.complete) else {
             return Err(JobsError::Conflict {
                 detail: format!(
                     "upload {} is incomplete ({} of {} bytes)",
@@ -520,7 +499,7 @@ impl Jobs {
                 offset: Some(upload.size),
             });
         };
-        let output = output_format_for(req.output_format.as_deref(), &input_format)?;
+        let output = req.output_format.unwrap_or(format_of(input_format)?);
         let mesh = spec.params.mesh_mode(upload.faces.is_some());
         if mesh && spec.outliers != OutlierMode::Off {
             return Err(JobsError::Invalid {
@@ -529,7 +508,7 @@ impl Jobs {
                     .into(),
             });
         }
-        validate_output(spec.outliers, &output)?;
+        validate_output(spec.outliers, output)?;
         let settings = &self.inner.settings;
         let tile_points = (!mesh && upload.points.is_none_or(|n| n > settings.job_tile_points))
             .then_some(settings.job_tile_points);
@@ -847,7 +826,7 @@ impl Jobs {
             input: input.0.clone(),
             output: output.to_path_buf(),
             input_format: format_of(&input.1).ok(),
-            output_format: format_of(&spec.output_format).ok(),
+            output_format: Some(spec.output_format),
             spec: spec.denoise.clone(),
         };
         let opts = RunOptions {
@@ -993,11 +972,9 @@ impl Jobs {
             .spec
             .resolve(self.inner.settings.outlier_alpha)
             .map_err(spec_error)?;
-        let input_format = canonical_format(&req.format).ok_or_else(|| {
-            JobsError::UnsupportedFormat(format!("unknown format `{}`", req.format))
-        })?;
-        let output_format = output_format_for(req.output_format.as_deref(), &input_format)?;
-        validate_output(spec.outliers, &output_format)?;
+        let input_format = req.format;
+        let output_format = req.output_format.unwrap_or(input_format);
+        validate_output(spec.outliers, output_format)?;
         let cancel = Arc::new(AtomicBool::new(false));
         // Dropped when the client goes away before the answer: the run stops at its next check.
         struct CancelOnDrop(Arc<AtomicBool>);
@@ -1028,8 +1005,8 @@ impl Jobs {
             let job = Job {
                 input: input.clone(),
                 output: output.clone(),
-                input_format: format_of(&input_format).ok(),
-                output_format: format_of(&output_format).ok(),
+                input_format: Some(input_format),
+                output_format: Some(output_format),
                 spec,
             };
             let opts = RunOptions {
@@ -1133,12 +1110,8 @@ mod tests {
         assert!(!valid_id(&id.to_uppercase()));
         assert_eq!(canonical_format("KITTI").as_deref(), Some("bin"));
         assert_eq!(canonical_format("laz").as_deref(), Some("laz"));
+        assert_eq!(canonical_format("txt").as_deref(), Some("xyz"));
         assert_eq!(canonical_format("doc"), None);
-        assert_eq!(output_format_for(None, "laz").unwrap(), "laz");
-        assert!(matches!(
-            output_format_for(Some("doc"), "ply"),
-            Err(JobsError::Invalid { field, .. }) if field == "output_format"
-        ));
         let s = scrub(
             "/d/uploads/x.ply: bad header; /d/jobs/y/result.ply; /d/other",
             Path::new("/d/uploads/x.ply"),
@@ -1166,7 +1139,7 @@ mod tests {
             Err(JobsError::Invalid { field, .. }) => assert_eq!(field, "outlier_alpha"),
             other => panic!("{other:?}"),
         }
-        assert!(validate_output(OutlierMode::Classify, "bin").is_err());
-        assert!(validate_output(OutlierMode::Remove, "bin").is_ok());
+        assert!(validate_output(OutlierMode::Classify, Format::Kitti).is_err());
+        assert!(validate_output(OutlierMode::Remove, Format::Kitti).is_ok());
     }
 }

@@ -21,6 +21,7 @@ use std::sync::Mutex;
 use rusqlite::{Connection, OptionalExtension, Row, params};
 
 use super::JobsError;
+use crate::io::Format;
 use crate::pipeline::{DenoiseSpec, Report};
 
 /// The status of a job, as OGC API – Processes names it.
@@ -102,8 +103,8 @@ pub struct JobSpec {
     /// What the run computes (stored flat, as `params`, `outliers` and `outlier_alpha`).
     #[serde(flatten)]
     pub denoise: DenoiseSpec,
-    /// Output extension (`ply`, `las`, `laz`, …).
-    pub output_format: String,
+    /// Output format (stored as its name: `ply`, `las`, `laz`, …).
+    pub output_format: Format,
     /// Memory budget of the run.
     pub memory_budget: u64,
     /// Forced tile size (large clouds), `None` to let the memory budget decide.
@@ -616,7 +617,7 @@ mod tests {
             status: Status::Accepted,
             spec: JobSpec {
                 denoise: DenoiseSpec::default(),
-                output_format: "ply".into(),
+                output_format: Format::Ply,
                 memory_budget: 1 << 30,
                 tile_points: Some(5000),
             },
