@@ -356,3 +356,20 @@ fn issue12_shell_pipe_of_shared_las() {
         }
     }
 }
+
+#[test]
+fn issue10_format_laz_to_a_stream_is_compressed() {
+    // LAZ is a format of its own: `--format laz` towards standard output compresses (it used to
+    // write uncompressed LAS, the compression being picked from a file extension there is not).
+    let dir = tempfile::tempdir().unwrap();
+    let input = write_scan(dir.path(), "in.las");
+    let expected = by_path(&input, &dir.path().join("out.laz"));
+    let o = qemd(&["denoise", s(&input), "-o", "-", "--format", "laz", "-q"]);
+    ok(&o);
+    assert!(o.stdout == expected, "stdout differs from out.laz");
+    // Bit 7 of the point data record format marks LASzip compression.
+    assert_eq!(o.stdout[104] & 0x80, 0x80);
+    let o = qemd(&["denoise", s(&input), "-o", "-", "--format", "las", "-q"]);
+    ok(&o);
+    assert_eq!(o.stdout[104] & 0x80, 0);
+}

@@ -146,6 +146,27 @@ fn openapi_params_are_the_cli_params() {
     assert_eq!(query, expected);
 }
 
+#[test]
+fn openapi_formats_are_the_format_enum() {
+    // Every name a request may give and every canonical name an answer carries.
+    use crate::io::Format;
+    let doc = openapi_document().unwrap();
+    let documented: BTreeSet<String> = doc["components"]["schemas"]["Format"]["enum"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_str().unwrap().to_string())
+        .collect();
+    let mut expected: BTreeSet<String> = Format::NAMES.iter().map(|n| n.to_string()).collect();
+    expected.extend(
+        Format::NAMES
+            .iter()
+            .filter_map(|n| Format::from_name(n))
+            .map(|f| f.name().to_string()),
+    );
+    assert_eq!(documented, expected);
+}
+
 #[tokio::test]
 async fn problems_for_routes_methods_and_tokens() {
     let dir = tempfile::tempdir().unwrap();

@@ -788,8 +788,14 @@ impl Jobs {
                 info!("stopped: dismissed");
                 self.remove_job_files(&id).await;
             }
-            Ok(report) => self.finish_success(&id, report, &dir, &output).await,
-            Err(PipelineError::Cancelled) if self.shutting_down() => {
+            Err(panicked) => {
+                error!(error = %panicked, "the run panicked");
+                self.finish_failed(&id, "internal error: the run panicked")
+                    .await;
+                self.remove_job_files(&id).await;
+            }
+            Ok(Ok(report)) => self.finish_success(&id, report, &dir, &output).await,
+            Ok(Err(PipelineError::Cancelled)) if self.shutting_down() => {
                 // Back in the queue of the next start; the finished tiles stay as checkpoints.
                 let i = id.clone();
                 let _ = self
@@ -797,7 +803,7 @@ impl Jobs {
                     .await;
                 info!("interrupted by shutdown; resumes at the next start");
             }
-            Err(e) => {
+            Ok(Err(e)) => {
                 let msg = scrub(&e.to_string(), &input.0, &output, self.data_dir());
                 if client_fault(&e) {
                     info!(error = %msg, "failed");
@@ -820,7 +826,7 @@ impl Jobs {
         dir: &Path,
         output: &Path,
         running: &Running,
-    ) -> Result<Report, PipelineError> {
+    ) -> Result<Result<Report, PipelineError>, JobsError> {
         let spec = &row.spec;
         let job = Job {
             input: input.0.clone(),
@@ -855,13 +861,9 @@ impl Jobs {
             })
         })
         .await;
-        match run {
-            Ok(r) => r,
-            Err(e) => Err(PipelineError::TempDir {
-                path: PathBuf::from("worker"),
-                detail: e.to_string(),
-            }),
-        }
+        // The outer error is the bridge's: the run panicked (reported as that, not as a
+        // pipeline error it is not).
+        run
     }
 
     async fn finish_success(&self, id: &str, mut report: Report, dir: &Path, output: &Path) {
