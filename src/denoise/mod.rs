@@ -19,6 +19,7 @@
 
 pub mod bilateral;
 pub mod cloud;
+pub mod common;
 pub mod filtered;
 pub mod frame;
 pub mod guarded;
