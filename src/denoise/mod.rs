@@ -20,8 +20,8 @@
 pub mod bilateral;
 pub mod cloud;
 pub mod common;
-pub mod filtered;
-pub mod frame;
+pub(crate) mod filtered;
+pub(crate) mod frame;
 pub mod guarded;
 pub mod isolation;
 pub mod normals;

@@ -57,7 +57,7 @@ pub fn summed_quadric(
 }
 
 /// One mesh pass: every vertex moves to the minimiser of the quadrics of its `rings`-ring.
-/// Returns the new positions and, per vertex, why it stayed put ([`stay`] flags, 0 if it moved).
+/// Returns the new positions and, per vertex, why it stayed put (`common::stay` flags, 0 if it moved).
 pub fn mesh_step(
     pos: &[DVec3],
     adjacency: &MeshAdjacency,

@@ -31,7 +31,7 @@
 //! Everything here works on in-memory positions and [`Faces`]; reading and writing files is the
 //! caller's business (except PNG output, which goes through [`crate::io::AtomicFile`]).
 
-pub mod methods;
+pub(crate) mod methods;
 pub mod metrics;
 pub mod noise;
 pub mod pairs;

@@ -1,5 +1,5 @@
 //! Text point clouds (`.xyz`, `.txt`, `.pts`); the line helpers it shares with the OBJ, OFF and
-//! PCD backends are in [`super::lines`].
+//! PCD backends are in `io/lines.rs`.
 //!
 //! # Brief overview
 //!

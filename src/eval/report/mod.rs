@@ -20,7 +20,7 @@
 //!
 //! # Files
 //!
-//! The roster is [`super::methods`]; `sections` builds the content and `doc` prints it. This file
+//! The roster is `eval/methods.rs`; `sections` builds the content and `doc` prints it. This file
 //! runs the experiments and writes the folder.
 
 use std::path::{Path, PathBuf};

@@ -36,7 +36,7 @@
 //!
 //! # Files
 //!
-//! [`patch`] synthesises the test patch, [`analysis`] resamples meshes as height fields and
+//! `patch` synthesises the test patch, `analysis` resamples meshes as height fields and
 //! measures their spectra, `present` turns a [`FrequencyResponse`] into charts, CSV and text;
 //! this file holds the experiment itself.
 
@@ -49,8 +49,8 @@ use super::table::TableMethod;
 use super::{EvalError, Mesh};
 use crate::denoise::denoise;
 
-pub mod analysis;
-pub mod patch;
+mod analysis;
+mod patch;
 mod present;
 
 pub use analysis::{
