@@ -18,17 +18,29 @@
 //!   async runtime to rayon; nothing before it knows about tokio.
 //! * [`api`]: the HTTP API (axum): routes, uploads, downloads, errors, OpenAPI, server.
 //! * [`config`], [`cli`]: configuration (figment) and the `qemd` command line.
+//!
+//! # Features
+//!
+//! `default = ["cli", "service", "eval"]`. Without features the crate is `points`, `io`,
+//! `geometry`, `neighbours`, `denoise`, `tiling` and `pipeline`: `eval` adds the evaluation layer
+//! (plotters, rustfft), `service` adds `jobs` and `api` (tokio, axum, rusqlite) and `cli` adds
+//! `cli` and `config` (clap, figment); the `qemd` binary needs all three.
 
 #![warn(missing_docs)]
 #![forbid(unsafe_code)]
 
+#[cfg(feature = "service")]
 pub mod api;
+#[cfg(feature = "cli")]
 pub mod cli;
+#[cfg(feature = "cli")]
 pub mod config;
 pub mod denoise;
+#[cfg(feature = "eval")]
 pub mod eval;
 pub mod geometry;
 pub mod io;
+#[cfg(feature = "service")]
 pub mod jobs;
 pub mod neighbours;
 pub mod pipeline;

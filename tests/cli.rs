@@ -3,20 +3,10 @@
 //! modified. Also the happy paths of every subcommand.
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Output;
 
+use crate::util::{qemd, s};
 use qem_denoise::io::Cloud;
-
-fn qemd(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_qemd"))
-        .args(args)
-        .output()
-        .expect("qemd runs")
-}
-
-fn s(p: &Path) -> &str {
-    p.to_str().unwrap()
-}
 
 /// Asserts a clean failure: exit code 1, one line on stderr naming `file` and containing
 /// `needle`, no panic, and no file in `dir` other than the inputs `keep`.

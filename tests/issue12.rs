@@ -1,19 +1,9 @@
 //! Issue 12's smaller fixes, through the real binary: every default in `denoise --help`, the
 //! default operator in `qemd table`, the σ line of `qemd noise`.
 
-use std::path::Path;
-use std::process::{Command, Output};
+use std::process::Output;
 
-fn qemd(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_qemd"))
-        .args(args)
-        .output()
-        .expect("qemd runs")
-}
-
-fn s(p: &Path) -> &str {
-    p.to_str().unwrap()
-}
+use crate::util::{qemd, s};
 
 fn ok(args: &[&str]) -> Output {
     let o = qemd(args);

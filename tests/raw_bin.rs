@@ -4,21 +4,10 @@
 //! little-endian f32): a 32-ring spinning LiDAR over a flat ground and a wall.
 
 use std::path::Path;
-use std::process::{Command, Output};
 
+use crate::util::{qemd, s};
 use qem_denoise::io::raw::BinLayout;
 use qem_denoise::io::{Cloud, Format, IoError};
-
-fn qemd(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_qemd"))
-        .args(args)
-        .output()
-        .expect("qemd runs")
-}
-
-fn s(p: &Path) -> &str {
-    p.to_str().unwrap()
-}
 
 /// A nuScenes-style sweep: 32 rings × `per_ring` azimuths, records x, y, z, intensity, ring.
 fn sweep(per_ring: usize) -> Vec<[f32; 5]> {

@@ -8,6 +8,7 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
 
+use crate::util::s;
 use glam::DVec3;
 use qem_denoise::io::Cloud;
 use qem_denoise::points::ScalarType;
@@ -18,10 +19,6 @@ fn bin() -> &'static str {
 
 fn qemd(args: &[&str]) -> Output {
     Command::new(bin()).args(args).output().expect("qemd runs")
-}
-
-fn s(p: &Path) -> &str {
-    p.to_str().unwrap()
 }
 
 fn ok(o: &Output) {

@@ -11,21 +11,12 @@
 use glam::DVec3;
 use rayon::prelude::*;
 
+use super::common::{mean_edge_length, merge_step};
 use super::normals::vertex_normals;
-use super::qem::merge_step;
 use super::{DenoiseError, NormalWeighting, Output, Params, Stats, Timer, origin_of};
 use crate::geometry::ExactSum;
 use crate::neighbours::{KnnIndex, MeshAdjacency, Neighbourhoods};
 use crate::points::Faces;
-
-/// Mean length of the unique undirected edges, summed exactly.
-pub fn mean_edge_length(pos: &[DVec3], adjacency: &MeshAdjacency) -> f64 {
-    adjacency
-        .edges()
-        .map(|(a, b)| (pos[a as usize] - pos[b as usize]).length())
-        .collect::<ExactSum>()
-        .mean()
-}
 
 /// Mean distance from each finite point to its nearest other point, summed exactly, read off
 /// k-NN lists that include the point itself (k ≥ 2).

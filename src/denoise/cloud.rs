@@ -35,10 +35,11 @@
 use glam::DVec3;
 use rayon::prelude::*;
 
+use super::common::{merge_step, stay};
 use super::frame::Frame;
 use super::guarded::{self, Guard};
 use super::normals::{filter_point_normals, pca_normals};
-use super::qem::{is_duplicate, merge_step};
+use super::qem::is_duplicate;
 use super::structure::{Structure, classify, local_fits, noise_scale};
 use super::{DenoiseError, Method, Params, Stats, StructureCounts, Timer, bilateral, qem};
 use crate::geometry::ExactSum;
@@ -189,7 +190,7 @@ pub struct CloudResult {
     pub duplicate: Vec<bool>,
     /// True where the point's neighbourhood had no plane (coincident or collinear) in pass 1.
     pub degenerate: Vec<bool>,
-    /// Why a pass left the point in place (`qem::stay` flags, or-ed over passes).
+    /// Why a pass left the point in place (`common::stay` flags, or-ed over passes).
     pub stayed: Vec<u8>,
     /// The neighbourhood class of the first cycle (`Structure` code) for the guarded operator,
     /// `None` for the others.
@@ -350,7 +351,7 @@ pub fn run(
     let hold = |cur: &mut Vec<DVec3>, stayed: &mut [u8]| {
         for (j, _) in isolated.iter().enumerate().filter(|(_, i)| **i) {
             cur[j] = frame.positions[j];
-            stayed[j] |= qem::stay::ISOLATED;
+            stayed[j] |= stay::ISOLATED;
         }
     };
     for pass in 0..sched.cycles {

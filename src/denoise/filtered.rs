@@ -29,88 +29,12 @@
 use glam::DVec3;
 use rayon::prelude::*;
 
+use super::common::{FaceTopology, mean_edge_length, merge_step, stay};
 use super::normals::{face_cross, vertex_normals};
-use super::qem::{merge_step, stay};
 use super::{DenoiseError, NormalWeighting, Output, Params, Stats, Timer};
 use crate::geometry::{ExactSum, Quadric};
 use crate::neighbours::MeshAdjacency;
 use crate::points::Faces;
-
-/// Faces around each vertex and faces sharing a vertex with each face, in CSR form.
-#[derive(Debug, Clone)]
-pub struct FaceTopology {
-    vertex_offsets: Vec<u32>,
-    vertex_faces: Vec<u32>,
-    face_offsets: Vec<u32>,
-    face_neighbours: Vec<u32>,
-}
-
-impl FaceTopology {
-    /// Builds the topology of `faces` over `n` vertices (indices already validated).
-    pub fn build(n: usize, faces: &Faces) -> FaceTopology {
-        let mut count = vec![0u32; n + 1];
-        for f in faces.iter() {
-            for &v in f {
-                count[v as usize + 1] += 1;
-            }
-        }
-        for v in 0..n {
-            count[v + 1] += count[v];
-        }
-        let vertex_offsets = count.clone();
-        let mut fill = count;
-        let mut vertex_faces = vec![0u32; vertex_offsets[n] as usize];
-        for (fi, f) in faces.iter().enumerate() {
-            for &v in f {
-                vertex_faces[fill[v as usize] as usize] = fi as u32;
-                fill[v as usize] += 1;
-            }
-        }
-        let lists: Vec<Vec<u32>> = (0..faces.len())
-            .into_par_iter()
-            .map(|fi| {
-                let mut l: Vec<u32> = faces
-                    .face(fi)
-                    .iter()
-                    .flat_map(|&v| {
-                        let v = v as usize;
-                        vertex_faces[vertex_offsets[v] as usize..vertex_offsets[v + 1] as usize]
-                            .iter()
-                            .copied()
-                    })
-                    .collect();
-                l.sort_unstable();
-                l.dedup();
-                l
-            })
-            .collect();
-        let mut face_offsets = Vec::with_capacity(faces.len() + 1);
-        face_offsets.push(0u32);
-        let mut face_neighbours = Vec::new();
-        for l in lists {
-            face_neighbours.extend_from_slice(&l);
-            face_offsets.push(face_neighbours.len() as u32);
-        }
-        FaceTopology {
-            vertex_offsets,
-            vertex_faces,
-            face_offsets,
-            face_neighbours,
-        }
-    }
-
-    /// The faces around vertex `v`, ascending.
-    #[inline]
-    pub fn faces_of(&self, v: usize) -> &[u32] {
-        &self.vertex_faces[self.vertex_offsets[v] as usize..self.vertex_offsets[v + 1] as usize]
-    }
-
-    /// The faces sharing a vertex with face `f` (itself included), ascending.
-    #[inline]
-    pub fn neighbours_of(&self, f: usize) -> &[u32] {
-        &self.face_neighbours[self.face_offsets[f] as usize..self.face_offsets[f + 1] as usize]
-    }
-}
 
 /// Unit normals, centroids and areas of every face.
 pub fn face_geometry(pos: &[DVec3], faces: &Faces) -> (Vec<DVec3>, Vec<DVec3>, Vec<f64>) {
@@ -294,7 +218,7 @@ pub fn mesh(pos: &[DVec3], faces: &Faces, params: &Params) -> Result<Output, Den
     };
     let adjacency = MeshAdjacency::build(pos.len(), faces)?;
     let topo = FaceTopology::build(pos.len(), faces);
-    let sigma_s = super::bilateral::mean_edge_length(pos, &adjacency);
+    let sigma_s = mean_edge_length(pos, &adjacency);
     drop(adjacency);
     let vn = vertex_normals(pos, faces, NormalWeighting::Area);
     stats.zero_area_faces = vn.zero_area_faces;

@@ -27,7 +27,8 @@ use glam::DVec3;
 use rayon::prelude::*;
 
 use super::Params;
-use super::qem::{bent_normal, stay};
+use super::common::stay;
+use super::qem::bent_normal;
 use super::structure::{LocalFit, Structure};
 use crate::geometry::{Quadric, SymMat3};
 use crate::neighbours::Neighbourhoods;

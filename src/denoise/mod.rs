@@ -19,8 +19,9 @@
 
 pub mod bilateral;
 pub mod cloud;
-pub mod filtered;
-pub mod frame;
+pub mod common;
+pub(crate) mod filtered;
+pub(crate) mod frame;
 pub mod guarded;
 pub mod isolation;
 pub mod normals;

@@ -7,27 +7,13 @@
 use glam::DVec3;
 use rayon::prelude::*;
 
-use super::filtered::{FaceTopology, face_geometry, filter_normals};
+use super::common::{FaceTopology, mean_edge_length, merge_step, stay};
+use super::filtered::{face_geometry, filter_normals};
 use super::normals::vertex_normals;
 use super::{DenoiseError, NormalWeighting, Output, Params, Planes, SolveKind, Stats, Timer};
 use crate::geometry::Quadric;
 use crate::neighbours::{MeshAdjacency, Neighbourhoods, RingScratch};
 use crate::points::Faces;
-
-/// Why a point stayed where it was in a pass (bit flags, or-ed over passes).
-pub mod stay {
-    /// The summed quadric was singular, or the solve not finite.
-    pub const SINGULAR: u8 = 1;
-    /// The minimiser lay farther than the point's neighbourhood reaches (isolated points and
-    /// outliers, whose planes all belong to a distant surface).
-    pub const FAR: u8 = 2;
-    /// The guarded step's total displacement was clamped to the bound of the local noise (or to
-    /// `--max-move`).
-    pub const BOUNDED: u8 = 4;
-    /// Fewer than k points lie within the isolation radius: the point keeps its input position
-    /// ([`crate::denoise::isolation`]).
-    pub const ISOLATED: u8 = 8;
-}
 
 /// The new position of `v` from the quadric `q` (relative to `v`), and why it stayed put, if it
 /// did. `limit2` (squared) bounds the step: a minimiser farther than the neighbourhood reaches
@@ -71,7 +57,7 @@ pub fn summed_quadric(
 }
 
 /// One mesh pass: every vertex moves to the minimiser of the quadrics of its `rings`-ring.
-/// Returns the new positions and, per vertex, why it stayed put ([`stay`] flags, 0 if it moved).
+/// Returns the new positions and, per vertex, why it stayed put (`common::stay` flags, 0 if it moved).
 pub fn mesh_step(
     pos: &[DVec3],
     adjacency: &MeshAdjacency,
@@ -110,7 +96,7 @@ pub fn mesh(pos: &[DVec3], faces: &Faces, params: &Params) -> Result<Output, Den
     };
     let adjacency = MeshAdjacency::build(pos.len(), faces)?;
     let topo = FaceTopology::build(pos.len(), faces);
-    let sigma_s = super::bilateral::mean_edge_length(pos, &adjacency);
+    let sigma_s = mean_edge_length(pos, &adjacency);
     timer.lap("neighbours", &mut stats);
     let s = params.schedule(true);
     let mut cur = pos.to_vec();
@@ -169,17 +155,6 @@ fn weighted_vertex_normals(
         }
     }
     acc.into_iter().map(DVec3::normalize_or_zero).collect()
-}
-
-/// Splits a pass's results into positions, or-ing its [`stay`] flags into `stayed`.
-pub fn merge_step(step: Vec<(DVec3, u8)>, stayed: &mut [u8]) -> Vec<DVec3> {
-    step.into_iter()
-        .zip(stayed.iter_mut())
-        .map(|((p, s), acc)| {
-            *acc |= s;
-            p
-        })
-        .collect()
 }
 
 /// One point pass: every finite point moves to the minimiser of the quadrics of its k-NN list,

@@ -31,6 +31,7 @@
 //! Everything here works on in-memory positions and [`Faces`]; reading and writing files is the
 //! caller's business (except PNG output, which goes through [`crate::io::AtomicFile`]).
 
+pub(crate) mod methods;
 pub mod metrics;
 pub mod noise;
 pub mod pairs;
@@ -54,7 +55,8 @@ use glam::DVec3;
 use thiserror::Error;
 
 use crate::denoise::DenoiseError;
-use crate::denoise::bilateral::{mean_edge_length, mean_spacing};
+use crate::denoise::bilateral::mean_spacing;
+use crate::denoise::common::mean_edge_length;
 use crate::io::{Cloud, IoError};
 use crate::neighbours::{KnnIndex, MeshAdjacency, NeighboursError};
 use crate::points::{Faces, ScalarType};
@@ -283,6 +285,15 @@ pub fn scale_length(positions: &[DVec3], faces: Option<&Faces>) -> Result<f64, E
         )));
     }
     Ok(l)
+}
+
+/// Writes `bytes` to `path` atomically.
+pub(crate) fn write_file(path: &std::path::Path, bytes: &[u8]) -> Result<(), EvalError> {
+    use std::io::Write as _;
+    let mut f = crate::io::AtomicFile::create(path)?;
+    f.write_all(bytes).map_err(|e| f.err(e))?;
+    f.commit()?;
+    Ok(())
 }
 
 #[cfg(test)]

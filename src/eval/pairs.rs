@@ -245,7 +245,7 @@ mod tests {
             .filter(|p| p.published.is_some())
             .collect();
         assert_eq!(pairs.len(), 2);
-        let methods = crate::eval::report::report_methods();
+        let methods = crate::eval::methods::report_methods();
         let out = run_pairs(Path::new(DEFAULT_DIR), &pairs, &methods, &mut |_| {}).unwrap();
         assert!(out.skipped.is_empty(), "{:?}", out.skipped);
         assert_eq!(out.results.len(), 2);

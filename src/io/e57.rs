@@ -67,7 +67,7 @@ use e57::{
 };
 use glam::{DQuat, DVec3};
 
-use super::text::{Tally, check_batch};
+use super::tally::{Tally, check_batch};
 use super::{
     AtomicFile, BATCH, Extras, Format, IoError, Meta, Sink, SinkOptions, Source, SourceInfo,
 };

@@ -59,6 +59,7 @@
 pub mod e57;
 pub mod input;
 pub mod las;
+pub(crate) mod lines;
 pub mod obj;
 pub mod off;
 pub mod output;
@@ -66,9 +67,11 @@ pub mod pcd;
 pub mod ply;
 pub mod raw;
 pub mod sniff;
+pub(crate) mod tally;
 pub mod text;
 
 pub use input::{InputFile, is_stream_input};
+pub use lines::LineEnding;
 pub use output::{AtomicFile, OutputTarget, STDIO, is_stdio, is_stream_output};
 
 use std::fs::File;

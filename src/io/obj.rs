@@ -36,10 +36,11 @@ use std::path::Path;
 
 use glam::DVec3;
 
-use super::text::{
-    LineEnding, LineSink, Tally, check_batch, coord_types, default_names, extra_fields, f64_schema,
-    parse_f64, push_value, show, split_eol, strip_comment, tokens,
+use super::lines::{
+    LineEnding, LineSink, coord_types, default_names, extra_fields, f64_schema, parse_f64,
+    push_value, show, split_eol, strip_comment, tokens,
 };
+use super::tally::{Tally, check_batch};
 use super::{Extras, Format, IoError, Meta, Sink, Source, SourceInfo, Trailer};
 use crate::points::{Faces, PointBatch, ScalarType, Schema};
 

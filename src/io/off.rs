@@ -30,11 +30,12 @@
 
 use std::path::Path;
 
-use super::text::{
-    LineEnding, LineReader, LineSink, Tally, check_batch, coord_types, default_names,
-    encode_f64_record, extra_fields, f64_schema, is_comment_or_blank, parse_f64, parse_u64,
-    push_value, show, split_eol, strip_comment, tokens,
+use super::lines::{
+    LineEnding, LineReader, LineSink, coord_types, default_names, encode_f64_record, extra_fields,
+    f64_schema, is_comment_or_blank, parse_f64, parse_u64, push_value, show, split_eol,
+    strip_comment, tokens,
 };
+use super::tally::{Tally, check_batch};
 use super::{Extras, Format, IoError, Meta, Sink, Source, SourceInfo, Trailer};
 use crate::points::{Faces, PointBatch, ScalarType, Schema};
 

@@ -33,7 +33,7 @@ use std::fs::File;
 use std::io::{BufReader, Read, Write};
 use std::path::Path;
 
-use super::text::{Tally, check_batch};
+use super::tally::{Tally, check_batch};
 use super::{AtomicFile, Extras, Format, IoError, Meta, Sink, Source, SourceInfo};
 use crate::points::{Endian, PointBatch, ScalarType, Schema};
 

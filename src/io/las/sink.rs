@@ -12,7 +12,7 @@ use super::layout::{
     get_u64, is_extended, put, return_number, vlr_bytes,
 };
 use super::{LASZIP_RECORD, LASZIP_USER, LAZ_CHUNK_SIZE, LasMeta, LasVlr, Piece, laz_error};
-use crate::io::text::{Tally, check_batch};
+use crate::io::tally::{Tally, check_batch};
 use crate::io::{
     AtomicFile, Extras, Format, IoError, Meta, Sink, SinkOptions, SourceInfo, Trailer,
 };

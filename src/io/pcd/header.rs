@@ -29,7 +29,7 @@ use std::io::{BufRead, Read};
 use std::path::Path;
 
 use crate::io::IoError;
-use crate::io::text::{LineEnding, show, split_eol, tokens};
+use crate::io::lines::{LineEnding, show, split_eol, tokens};
 use crate::points::ScalarType;
 
 /// Longest header line accepted (a safeguard against reading a large binary file as one line).

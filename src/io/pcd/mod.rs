@@ -78,7 +78,8 @@ pub use header::{PcdData, PcdField};
 
 use self::body::{Columns, parse_value, push_value};
 use self::header::{DEFAULT_VIEWPOINT, Header};
-use super::text::{LineEnding, Tally, check_batch, show, tokens};
+use super::lines::{LineEnding, show, tokens};
+use super::tally::{Tally, check_batch};
 use super::{
     AtomicFile, Extras, Format, IoError, Meta, Sink, SinkOptions, Source, SourceInfo, Trailer,
     foreign_field_type, open_file, regular_len,

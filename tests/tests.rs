@@ -1,0 +1,28 @@
+//! The integration tests, one binary (as ripgrep's `tests/tests.rs`): one module per area, the
+//! helpers they share in [`util`]. `cargo test --test tests seams::` runs one module's tests;
+//! tests marked `#[ignore = "needs ../shared"]` read the real data beside the repository and run
+//! with `cargo test --release -- --include-ignored`.
+
+mod util;
+
+mod cli;
+mod docker;
+mod golden;
+mod io_copc;
+mod io_e57;
+mod io_flags;
+mod io_formats;
+mod io_las;
+mod io_pcd;
+mod io_ply;
+mod issue12;
+mod knn_bounds;
+mod operator;
+mod raw_bin;
+mod real_data;
+mod resume;
+mod seams;
+mod server;
+mod streams;
+mod table;
+mod tempdir;
