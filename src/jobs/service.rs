@@ -240,7 +240,7 @@ pub(super) fn scrub(msg: &str, input: &Path, output: &Path, data_dir: &Path) -> 
 fn client_fault(e: &PipelineError) -> bool {
     match e {
         PipelineError::Io(io) => !matches!(io, IoError::Io { .. }),
-        PipelineError::Denoise { .. } | PipelineError::Params(_) => true,
+        PipelineError::Denoise { .. } => true,
         _ => false,
     }
 }
@@ -1083,7 +1083,7 @@ impl Jobs {
                         report,
                     })
                 }
-                Err(PipelineError::Params(e)) => Err(param_error(e)),
+                Err(PipelineError::Denoise { path: None, error }) => Err(param_error(error)),
                 Err(e) if client_fault(&e) => Err(JobsError::BadContent(scrub(
                     &e.to_string(),
                     &input,

@@ -1,0 +1,54 @@
+//! What a job computes: where it reads and writes, the parameters and the outlier handling.
+
+use std::path::PathBuf;
+
+use crate::denoise::Params;
+use crate::io::Format;
+
+/// What to do with statistical outliers: points whose mean distance to their k-NN list is above
+/// `mean + alpha·σ` of that statistic over the whole cloud.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize, Default)]
+#[serde(rename_all = "lowercase")]
+pub enum OutlierMode {
+    /// Leave them.
+    #[default]
+    Off,
+    /// Flag them: LAS class 7, or a `noise` property.
+    Classify,
+    /// Drop them from the output.
+    Remove,
+}
+
+/// Where a job reads and writes, and what it does.
+#[derive(Debug, Clone)]
+pub struct Job {
+    /// Input file.
+    pub input: PathBuf,
+    /// Output file.
+    pub output: PathBuf,
+    /// Input format (else from the extension).
+    pub input_format: Option<Format>,
+    /// Output format (else from the extension).
+    pub output_format: Option<Format>,
+    /// Denoising parameters.
+    pub params: Params,
+    /// Outlier handling.
+    pub outliers: OutlierMode,
+    /// Outlier threshold in standard deviations above the mean.
+    pub outlier_alpha: f64,
+}
+
+impl Job {
+    /// A job with default parameters and no outlier handling.
+    pub fn new(input: impl Into<PathBuf>, output: impl Into<PathBuf>) -> Job {
+        Job {
+            input: input.into(),
+            output: output.into(),
+            input_format: None,
+            output_format: None,
+            params: Params::default(),
+            outliers: OutlierMode::Off,
+            outlier_alpha: 1.0,
+        }
+    }
+}
