@@ -134,3 +134,57 @@ fn ctrl_c_stops_the_run_and_cleans_up() {
         .collect();
     assert!(leftovers.is_empty(), "{leftovers:?}");
 }
+
+#[test]
+fn issue10_a_killed_runs_temp_space_is_removed_by_the_next_run() {
+    let d = tempfile::tempdir().unwrap();
+    let tmp = d.path().join("tmp");
+    std::fs::create_dir(&tmp).unwrap();
+    // A persistent job directory and a foreign directory in the same base are never touched.
+    let foreign = ["job", "qemd-tiles-foreign"];
+    for name in foreign {
+        std::fs::create_dir(tmp.join(name)).unwrap();
+        std::fs::write(tmp.join(name).join("plan.json"), b"{}").unwrap();
+    }
+    let input = d.path().join("in.ply");
+    cloud(&input, 400_000);
+    let mut child = qemd()
+        .args(["denoise", input.to_str().unwrap(), "-o"])
+        .arg(d.path().join("killed.ply"))
+        .args(["--tile-points", "2000", "-q", "--temp-dir"])
+        .arg(&tmp)
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    // Wait until the run has its directory, then kill it outright (no cleanup possible).
+    let start = Instant::now();
+    while entries(&tmp).len() <= foreign.len() {
+        assert!(
+            start.elapsed() < Duration::from_secs(60),
+            "the run never started"
+        );
+        std::thread::sleep(Duration::from_millis(2));
+    }
+    child.kill().unwrap();
+    child.wait().unwrap();
+    let left: Vec<String> = entries(&tmp)
+        .into_iter()
+        .filter(|n| !foreign.contains(&n.as_str()))
+        .collect();
+    assert_eq!(left.len(), 1, "{left:?}");
+    assert!(left[0].starts_with("qemd-tiles-"), "{left:?}");
+    assert!(tmp.join(&left[0]).join("pid").exists());
+
+    // The next tiled run in the same base removes it, and only it.
+    let small = d.path().join("small.ply");
+    cloud(&small, 3000);
+    let ok = qemd()
+        .args(["denoise", small.to_str().unwrap(), "-o"])
+        .arg(d.path().join("out.ply"))
+        .args(["--tile-points", "400", "-q", "--temp-dir"])
+        .arg(&tmp)
+        .status()
+        .unwrap();
+    assert!(ok.success());
+    assert_eq!(entries(&tmp), foreign.map(String::from).to_vec());
+}

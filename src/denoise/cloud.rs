@@ -471,13 +471,34 @@ pub fn run(
     })
 }
 
+/// What [`run_all`] gives, one entry per input position.
+#[derive(Debug, Clone)]
+pub struct AllResult {
+    /// New positions (points failing [`crate::points::in_range`] stay as they were).
+    pub positions: Vec<DVec3>,
+    /// Mean distance to the other members of the point's k-NN list (the outlier statistic);
+    /// NaN for points not processed.
+    pub knn_mean: Vec<f64>,
+    /// What happened.
+    pub stats: Stats,
+}
+
+impl From<AllResult> for super::Output {
+    fn from(r: AllResult) -> super::Output {
+        super::Output {
+            positions: r.positions,
+            stats: r.stats,
+        }
+    }
+}
+
 /// Runs the point operator on a whole cloud in memory (global index = position in `positions`).
 /// Points failing [`crate::points::in_range`] (non-finite or beyond ±10¹²) are left as they are
 /// and counted.
 ///
 /// # Errors
 /// Fewer finite points than k.
-pub fn run_all(positions: &[DVec3], params: &Params) -> Result<super::Output, DenoiseError> {
+pub fn run_all(positions: &[DVec3], params: &Params) -> Result<AllResult, DenoiseError> {
     let finite: Vec<usize> = (0..positions.len())
         .filter(|&i| crate::points::in_range(positions[i]))
         .collect();
@@ -506,11 +527,14 @@ pub fn run_all(positions: &[DVec3], params: &Params) -> Result<super::Output, De
     stats.points = positions.len() as u64;
     stats.non_finite = (positions.len() - pts.len()) as u64;
     let mut out = positions.to_vec();
-    for (&i, &p) in finite.iter().zip(&result.positions) {
-        out[i] = p;
+    let mut knn_mean = vec![f64::NAN; positions.len()];
+    for (j, &i) in finite.iter().enumerate() {
+        out[i] = result.positions[j];
+        knn_mean[i] = result.knn_mean[j];
     }
-    Ok(super::Output {
+    Ok(AllResult {
         positions: out,
+        knn_mean,
         stats,
     })
 }

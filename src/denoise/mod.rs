@@ -404,7 +404,7 @@ pub fn denoise(
             }
             Ok(out)
         }
-        _ => cloud::run_all(positions, params),
+        _ => cloud::run_all(positions, params).map(Output::from),
     }
 }
 

@@ -213,7 +213,7 @@ pub(super) fn scrub(msg: &str, input: &Path, output: &Path, data_dir: &Path) -> 
 fn client_fault(e: &PipelineError) -> bool {
     match e {
         PipelineError::Io(io) => !matches!(io, IoError::Io { .. }),
-        PipelineError::Denoise { .. } | PipelineError::Params(_) => true,
+        PipelineError::Denoise { .. } => true,
         _ => false,
     }
 }

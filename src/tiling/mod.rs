@@ -17,12 +17,16 @@
 //! 4. **Stitch** ([`spill::ResultMerge`]): the result files merge in global-index order while
 //!    the input streams a third time, so every attribute is copied from the input untouched.
 //!
+//! Every file of a run lives in its work directory ([`workdir`]), which names them and says
+//! which phases are committed (what a resumed run skips).
+//!
 //! With ties broken by global index, sums in a fixed order and Jacobi passes, the tiled output is
 //! bit-identical to the in-memory output for any tile size.
 
 pub mod occupancy;
 pub mod plan;
 pub mod spill;
+pub mod workdir;
 
 use std::path::{Path, PathBuf};
 

@@ -1,5 +1,6 @@
 //! The on-disk formats of the tiled path: spill files (points per tile) and result files
-//! (finished tiles), both little-endian fixed-size records.
+//! (finished tiles), both little-endian fixed-size records, in the work directory
+//! ([`super::workdir`] names them).
 //!
 //! ```text
 //!  spill  tile_<t>.pts   [ index|HALO<<63 : u64 | x : f64 | y : f64 | z : f64 ]   32 bytes
@@ -18,6 +19,7 @@ use glam::DVec3;
 use rayon::prelude::*;
 
 use super::TilingError;
+use super::workdir::{merge_path, result_path, spill_path};
 use crate::io::AtomicFile;
 
 /// Bytes per spill record.
@@ -28,16 +30,6 @@ pub const RESULT_RECORD: usize = 40;
 const HALO: u64 = 1 << 63;
 /// Write buffer per open spill file.
 const BUFFER: usize = 1 << 18;
-
-/// The spill file of tile `t` in `dir`.
-pub fn spill_path(dir: &Path, t: usize) -> PathBuf {
-    dir.join(format!("tile_{t:05}.pts"))
-}
-
-/// The result file of tile `t` in `dir`.
-pub fn result_path(dir: &Path, t: usize) -> PathBuf {
-    dir.join(format!("tile_{t:05}.res"))
-}
 
 fn err(path: &Path, e: std::io::Error) -> TilingError {
     TilingError::Io {
@@ -274,7 +266,7 @@ impl ResultMerge {
         while paths.len() > MAX_OPEN {
             let mut next = Vec::new();
             for (g, group) in paths.chunks(MAX_OPEN).enumerate() {
-                let path = dir.join(format!("merge_{level}_{g:05}.res"));
+                let path = merge_path(dir, level, g);
                 let mut m = ResultMerge::from_paths(group)?;
                 let mut w = BufWriter::new(File::create(&path).map_err(|e| err(&path, e))?);
                 while let Some(r) = m.next_result()? {

@@ -1,0 +1,138 @@
+//! The error of a pipeline run, and how the errors of the layers below map into it (their
+//! cancellation is the run's).
+
+use std::path::{Path, PathBuf};
+
+use thiserror::Error;
+
+use super::SpecError;
+use crate::denoise::DenoiseError;
+use crate::io::{self, IoError};
+use crate::neighbours::NeighboursError;
+use crate::tiling::TilingError;
+
+/// Errors of a pipeline run; each names the file concerned.
+#[derive(Debug, Error)]
+#[non_exhaustive]
+pub enum PipelineError {
+    /// Reading or writing failed.
+    #[error(transparent)]
+    Io(#[from] IoError),
+    /// The parameters are invalid (checked before any I/O; the spec's one check).
+    #[error(transparent)]
+    Params(#[from] SpecError),
+    /// The denoiser refused the input file `path`.
+    #[error("{path}: {error}", path = .path.display())]
+    Denoise {
+        /// Input file.
+        path: PathBuf,
+        /// What the denoiser said.
+        error: DenoiseError,
+    },
+    /// The output path names the input file.
+    #[error("{path}: refusing to overwrite the input file", path = .path.display())]
+    SameFile {
+        /// The path given twice.
+        path: PathBuf,
+    },
+    /// The temporary directory is unusable.
+    #[error("{path}: temporary directory unusable: {detail}", path = .path.display())]
+    TempDir {
+        /// The directory.
+        path: PathBuf,
+        /// Why.
+        detail: String,
+    },
+    /// The tiled path failed.
+    #[error("{path}: {error}", path = .path.display())]
+    Tiling {
+        /// Input file.
+        path: PathBuf,
+        /// What failed.
+        error: TilingError,
+    },
+    /// The run was cancelled (Ctrl-C, a job cancel).
+    #[error("cancelled")]
+    Cancelled,
+    /// The report could not be written.
+    #[error("{path}: cannot write report: {detail}", path = .path.display())]
+    Report {
+        /// Report path.
+        path: PathBuf,
+        /// What failed.
+        detail: String,
+    },
+}
+
+impl PipelineError {
+    /// The error of the denoiser on `path`; its cancellation is the run's.
+    pub(crate) fn denoise(path: &Path, error: DenoiseError) -> PipelineError {
+        match error {
+            DenoiseError::Neighbours(NeighboursError::Cancelled) => PipelineError::Cancelled,
+            error => PipelineError::Denoise {
+                path: path.to_path_buf(),
+                error,
+            },
+        }
+    }
+
+    /// The error of the tiled path on `path`; its cancellation is the run's.
+    pub(crate) fn tiling(path: &Path, error: TilingError) -> PipelineError {
+        match error {
+            TilingError::Cancelled
+            | TilingError::Denoise {
+                error: DenoiseError::Neighbours(NeighboursError::Cancelled),
+                ..
+            } => PipelineError::Cancelled,
+            error => PipelineError::Tiling {
+                path: path.to_path_buf(),
+                error,
+            },
+        }
+    }
+
+    /// The same error naming the stream `input` where it named its spool.
+    pub(crate) fn with_input(self, input: &io::InputFile) -> PipelineError {
+        let (from, to) = (input.path(), input.shown());
+        let swap = |p: PathBuf| if p == from { to.to_path_buf() } else { p };
+        match self {
+            PipelineError::Io(e) => PipelineError::Io(input.explain(e)),
+            PipelineError::Denoise { path, error } => PipelineError::Denoise {
+                path: swap(path),
+                error,
+            },
+            PipelineError::Tiling { path, error } => PipelineError::Tiling {
+                path: swap(path),
+                error,
+            },
+            other => other,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn issue10_parameters_and_files_have_one_variant_each() {
+        let bad = || DenoiseError::Param {
+            name: "k",
+            detail: "must be ≥ 2".into(),
+        };
+        let params = PipelineError::from(SpecError::from(bad()));
+        let file = PipelineError::denoise(Path::new("/data/in.ply"), bad());
+        assert!(matches!(params, PipelineError::Params(_)));
+        assert_eq!(params.to_string(), bad().to_string());
+        assert_eq!(file.to_string(), format!("/data/in.ply: {}", bad()));
+        let cancelled = DenoiseError::Neighbours(NeighboursError::Cancelled);
+        assert!(matches!(
+            PipelineError::denoise(Path::new("x"), cancelled),
+            PipelineError::Cancelled
+        ));
+        assert!(matches!(
+            PipelineError::tiling(Path::new("x"), TilingError::Cancelled),
+            PipelineError::Cancelled
+        ));
+    }
+}

@@ -1,0 +1,32 @@
+//! Streaming the input batch by batch (the tiled path reads it once per pass), and the options
+//! every sink of a run is created with.
+
+use super::{Job, OutlierMode, PipelineError, RunOptions};
+use crate::io::{self, BATCH, Extras, SinkOptions, Source};
+use crate::points::PointBatch;
+
+/// The sink options of `job`'s output.
+pub(crate) fn sink_options(job: &Job, opts: &RunOptions) -> SinkOptions {
+    SinkOptions {
+        noise_flag: job.spec.outliers == OutlierMode::Classify,
+        temp_dir: opts.temp_dir.clone(),
+    }
+}
+
+/// Streams every batch of the job's input through `f`, with cancellation checks and progress.
+pub(crate) fn stream(
+    job: &Job,
+    opts: &RunOptions,
+    mut f: impl FnMut(&PointBatch) -> Result<(), PipelineError>,
+) -> Result<Extras, PipelineError> {
+    let mut src: Box<dyn Source> = io::open(&job.input, job.input_format)?;
+    let mut batch = PointBatch::with_capacity(src.info().schema.record_len, BATCH);
+    let mut done = 0u64;
+    while src.read_batch(&mut batch, BATCH)? > 0 {
+        opts.check_cancel()?;
+        f(&batch)?;
+        done += batch.len() as u64;
+        opts.progress.advance(done);
+    }
+    Ok(src.finish()?)
+}

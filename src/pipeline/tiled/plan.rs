@@ -1,0 +1,92 @@
+//! Phase 1, **plan**: one streaming pass collects bounds, counts and a sample, and splits space
+//! into tiles sized to the memory budget ([`crate::tiling::plan`]).
+
+use glam::DVec3;
+
+use crate::denoise::DenoiseError;
+use crate::denoise::cloud;
+use crate::io::SourceInfo;
+use crate::neighbours::NeighboursError;
+use crate::pipeline::stream::stream;
+use crate::pipeline::{Job, PipelineError, RunOptions};
+use crate::tiling::plan::{Plan, Planner, SAMPLE};
+
+/// What the memory budget allows one tile.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Limits {
+    /// Points a tile targets (owned).
+    pub target: u64,
+    /// Most points (owned and halo) a tile's first load may hold.
+    pub max_points: u64,
+    /// Most points a halo load may read before they are counted.
+    pub max_staged: u64,
+}
+
+impl Limits {
+    /// The limits of `opts` at `per_point` working-set bytes per point
+    /// ([`crate::pipeline::bytes_per_point`]).
+    pub fn new(opts: &RunOptions, per_point: u64) -> Limits {
+        let budget = opts.memory_budget;
+        // A tile's working set plus the next tile read ahead, the planning sample and I/O
+        // buffers must fit the budget: a tile targets 40 % of it.
+        let target = opts
+            .tile_points
+            .unwrap_or_else(|| (budget * 2 / (5 * per_point)).max(10_000));
+        // One tile may run on as many points (owned and halo) as 60 % of the budget holds at
+        // `per_point` bytes (the rest holds allocator slack and transient copies, the read-ahead
+        // tile, the occupancy grid, the sample and I/O buffers); the tile target is 40 %, so a
+        // uniform cloud's halo fits.
+        let max_points = budget / 5 * 3 / per_point.max(1);
+        // A halo load may read as many points as 80 % of the budget holds at 80 bytes (a read
+        // point and its position and index copies) before they are counted. A grown halo is
+        // otherwise not refused (docs/DECISIONS.md, issue 16): refusing it failed real airborne
+        // scans at 64–128 MiB.
+        let max_staged = budget / 5 * 4 / 80;
+        Limits {
+            target,
+            max_points,
+            max_staged,
+        }
+    }
+}
+
+/// Plans the tiles of `job`'s input within `limits`.
+///
+/// # Errors
+/// Read failures, cancellation; no finite point, all points identical, fewer than k.
+pub fn plan(
+    job: &Job,
+    opts: &RunOptions,
+    info: &SourceInfo,
+    limits: &Limits,
+) -> Result<Plan, PipelineError> {
+    opts.progress.phase("plan", info.len.unwrap_or(0));
+    let mut planner = Planner::new(SAMPLE);
+    stream(job, opts, |b| {
+        for (j, p) in b.positions.iter().enumerate() {
+            planner.add(b.start + j as u64, *p);
+        }
+        Ok(())
+    })?;
+    let refuse = |error| Err(PipelineError::denoise(&job.input, error));
+    let finite = planner.finite();
+    if finite == 0 {
+        return refuse(DenoiseError::Empty);
+    }
+    if finite > 1 && planner.bounds().size() == DVec3::ZERO {
+        return refuse(DenoiseError::AllIdentical(finite as usize));
+    }
+    let k = job.spec.params.k();
+    if finite < k as u64 {
+        return refuse(DenoiseError::Neighbours(NeighboursError::TooFewPoints {
+            points: finite as usize,
+            k,
+        }));
+    }
+    Ok(planner.finish_within(
+        limits.target,
+        limits.max_points,
+        k,
+        cloud::reach(&job.spec.params),
+    ))
+}
