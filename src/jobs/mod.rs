@@ -33,17 +33,22 @@
 //! job is indistinguishable from one that does not exist.
 
 pub mod bridge;
+mod ids;
 pub mod metrics;
 pub mod preview;
 pub mod progress;
+mod recovery;
+mod requests;
+mod run;
 mod service;
 pub mod store;
+mod sync;
 mod uploads;
 
-pub use service::{
-    FormatHint, JobInfo, JobRequest, Jobs, ResultFile, Settings, SyncOutput, SyncRequest,
-    canonical_format,
+pub use requests::{
+    FormatHint, JobInfo, JobRequest, ResultFile, SyncOutput, SyncRequest, canonical_format,
 };
+pub use service::{Jobs, Settings};
 pub use store::{JobRow, JobSpec, Status, Upload};
 pub use uploads::{DRAIN_MAX, check_hint, discard};
 

@@ -35,7 +35,7 @@ use std::path::{Path, PathBuf};
 
 use glam::DVec3;
 
-use super::service::format_of;
+use super::requests::format_of;
 use super::store::Status;
 use super::{Jobs, JobsError, bridge};
 use crate::io::{AtomicFile, IoError};

@@ -1,4 +1,6 @@
-//! The [`Jobs`] handle: queue, workers, job lifecycle and the synchronous path.
+//! The [`Jobs`] handle: settings, shared state, the queue and the job operations (submit,
+//! inspect, list, dismiss, results, shutdown). The worker loop is in `run.rs`, the synchronous
+//! path in `sync.rs`, start-up recovery in `recovery.rs`, request types in `requests.rs`.
 //!
 //! Lifecycle of a job (statuses as OGC API – Processes names them):
 //!
@@ -16,24 +18,22 @@
 //! the worker, removes the files it wrote.
 
 use std::collections::{HashMap, VecDeque};
-use std::io::Read;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
-use std::time::{Duration, SystemTime, UNIX_EPOCH};
+use std::time::Duration;
 
-use sha2::{Digest, Sha256};
 use tokio::sync::{Notify, watch};
-use tracing::{Instrument, error, info, info_span, warn};
+use tracing::{info, warn};
 
+use super::ids::{new_id, now_ms, valid_id};
 use super::metrics::Metrics;
 use super::progress::{JobProgress, ProgressView};
-use super::store::{JobRow, JobSpec, Status, Store, Upload};
+use super::recovery::{clear_dir, remove_stale_files};
+use super::requests::{JobInfo, JobRequest, ResultFile, format_of, spec_error, validate_output};
+use super::store::{JobRow, JobSpec, Status, Store};
 use super::{JobsError, bridge};
-use crate::io::{Format, IoError};
-use crate::pipeline::{
-    self, Job, NoProgress, OutlierMode, PipelineError, Report, RunOptions, SpecError, SpecOverlay,
-};
+use crate::pipeline::{self, OutlierMode};
 
 /// What the service needs from the configuration.
 #[derive(Debug, Clone)]
@@ -74,197 +74,21 @@ impl Default for Settings {
     }
 }
 
-/// How the client named the format of an upload.
-#[derive(Debug, Clone, Default)]
-pub struct FormatHint {
-    /// `?format=` (a format name or extension).
-    pub format: Option<String>,
-    /// The client's file name (its extension is a hint too).
-    pub filename: Option<String>,
-}
-
-/// A job submission, as the API received it (validated here).
-#[derive(Debug, Clone)]
-pub struct JobRequest {
-    /// The input upload's id.
-    pub input: String,
-    /// The request's parameter choices (resolved and validated here, over the configured
-    /// outlier threshold).
-    pub spec: SpecOverlay,
-    /// Output format (else the input's).
-    pub output_format: Option<Format>,
-}
-
-/// A synchronous request.
-#[derive(Debug, Clone)]
-pub struct SyncRequest {
-    /// Input format.
-    pub format: Format,
-    /// The request's parameter choices.
-    pub spec: SpecOverlay,
-    /// Output format (else the input's).
-    pub output_format: Option<Format>,
-}
-
-/// The answer of a synchronous request.
-#[derive(Debug, Clone)]
-pub struct SyncOutput {
-    /// The denoised file.
-    pub bytes: Vec<u8>,
-    /// Its format.
-    pub format: Format,
-    /// What the run did (paths replaced by `input` and `result`).
-    pub report: Report,
-}
-
-/// A job with its live progress.
-#[derive(Debug, Clone)]
-pub struct JobInfo {
-    /// The stored row.
-    pub row: JobRow,
-    /// Progress: live while running, complete when successful, `None` otherwise.
-    pub progress: Option<ProgressView>,
-}
-
-/// A downloadable result.
-#[derive(Debug, Clone)]
-pub struct ResultFile {
-    /// Where it is.
-    pub path: PathBuf,
-    /// Bytes.
-    pub size: u64,
-    /// SHA-256 (hex): the strong ETag.
-    pub sha256: String,
-    /// Format.
-    pub format: Format,
-    /// When the job finished, ms since the Unix epoch.
-    pub finished_ms: i64,
-}
-
-/// The canonical extension for a format name (`kitti` → `bin`, `txt` → `xyz`), `None` when
-/// unknown.
-pub fn canonical_format(name: &str) -> Option<String> {
-    Format::from_name(name.trim()).map(|f| f.name().to_string())
-}
-
-/// The pipeline's format for an extension the service produced (always known).
-pub(super) fn format_of(ext: &str) -> Result<Format, JobsError> {
-    Format::from_name(ext).ok_or_else(|| JobsError::Internal(format!("unknown extension {ext}")))
-}
-
-/// Milliseconds since the Unix epoch.
-pub(super) fn now_ms() -> i64 {
-    SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .map_or(0, |d| i64::try_from(d.as_millis()).unwrap_or(i64::MAX))
-}
-
-/// A fresh random id.
-pub(super) fn new_id() -> String {
-    uuid::Uuid::new_v4().to_string()
-}
-
-/// True for a well-formed id (anything else cannot exist, and never reaches the file system).
-pub(super) fn valid_id(id: &str) -> bool {
-    uuid::Uuid::parse_str(id).is_ok_and(|u| u.hyphenated().to_string() == id)
-}
-
-/// Lower-case hex.
-pub(super) fn hex(bytes: &[u8]) -> String {
-    use std::fmt::Write;
-    bytes.iter().fold(String::new(), |mut s, b| {
-        let _ = write!(s, "{b:02x}");
-        s
-    })
-}
-
-/// SHA-256 of a file, streamed.
-pub(super) fn sha256_file(path: &Path) -> Result<String, JobsError> {
-    let mut f = std::fs::File::open(path)
-        .map_err(|e| JobsError::io(format!("open {}", path.display()), e))?;
-    let mut h = Sha256::new();
-    let mut buf = vec![0u8; 1 << 20];
-    loop {
-        let n = f
-            .read(&mut buf)
-            .map_err(|e| JobsError::io(format!("read {}", path.display()), e))?;
-        if n == 0 {
-            break;
-        }
-        h.update(&buf[..n]);
-    }
-    Ok(hex(&h.finalize()))
-}
-
-/// Replaces server paths in a message: the input and output by `input` and `result`, the data
-/// directory by `<data>`. Clients never see where the server keeps files.
-pub(super) fn scrub(msg: &str, input: &Path, output: &Path, data_dir: &Path) -> String {
-    let mut s = msg.to_string();
-    for (p, label) in [(input, "input"), (output, "result"), (data_dir, "<data>")] {
-        let text = p.display().to_string();
-        if !text.is_empty() {
-            s = s.replace(&text, label);
-        }
-    }
-    s
-}
-
-/// Is a pipeline failure the input's or the request's fault (as opposed to the server's)?
-fn client_fault(e: &PipelineError) -> bool {
-    match e {
-        PipelineError::Io(io) => !matches!(io, IoError::Io { .. }),
-        PipelineError::Denoise { .. } => true,
-        _ => false,
-    }
-}
-
-/// Maps a spec error to the request field it names (`params.knn`; the outlier options may sit
-/// at the top level of a job, so they keep their bare names).
-pub(super) fn spec_error(e: SpecError) -> JobsError {
-    JobsError::Invalid {
-        field: match e.field {
-            f @ ("outliers" | "outlier_alpha") => f.to_string(),
-            f => format!("params.{f}"),
-        },
-        detail: e.detail,
-    }
-}
-
-/// Refuses output options a sink would refuse later (noise flags in KITTI, OBJ, OFF).
-fn validate_output(outliers: OutlierMode, f: Format) -> Result<(), JobsError> {
-    let output = f.name();
-    if outliers == OutlierMode::Classify
-        && matches!(
-            f,
-            Format::Kitti | Format::Nuscenes | Format::Bin(_) | Format::Obj | Format::Off
-        )
-    {
-        return Err(JobsError::Invalid {
-            field: "outliers".into(),
-            detail: format!(
-                "`classify` needs an output format with room for a flag; {output} has none \
-                 (use remove, or another output_format)"
-            ),
-        });
-    }
-    Ok(())
-}
-
 /// A running job, as the worker and a DELETE share it.
-struct Running {
-    cancel: Arc<AtomicBool>,
-    progress: Arc<JobProgress>,
+pub(super) struct Running {
+    pub(super) cancel: Arc<AtomicBool>,
+    pub(super) progress: Arc<JobProgress>,
     /// Set by a DELETE: the worker must not record the outcome and must remove its files.
-    dismissed: AtomicBool,
+    pub(super) dismissed: AtomicBool,
     /// Becomes true when the worker is done with the job's files.
-    done: watch::Sender<bool>,
+    pub(super) done: watch::Sender<bool>,
 }
 
 #[derive(Default)]
-struct Queue {
-    ids: VecDeque<String>,
+pub(super) struct Queue {
+    pub(super) ids: VecDeque<String>,
     /// Slots promised to submissions still being written to the store.
-    reserved: usize,
+    pub(super) reserved: usize,
 }
 
 pub(super) struct Inner {
@@ -272,24 +96,24 @@ pub(super) struct Inner {
     pub(super) store: Store,
     pub(super) metrics: Metrics,
     // std Mutexes below: short critical sections, never held across an await.
-    queue: Mutex<Queue>,
-    wake: Notify,
-    running: Mutex<HashMap<String, Arc<Running>>>,
+    pub(super) queue: Mutex<Queue>,
+    pub(super) wake: Notify,
+    pub(super) running: Mutex<HashMap<String, Arc<Running>>>,
     /// Uploads with a PATCH in progress (one at a time each).
     pub(super) patching: Mutex<std::collections::HashSet<String>>,
-    shutdown: watch::Sender<bool>,
-    workers: Mutex<Vec<tokio::task::JoinHandle<()>>>,
+    pub(super) shutdown: watch::Sender<bool>,
+    pub(super) workers: Mutex<Vec<tokio::task::JoinHandle<()>>>,
     /// The synchronous path's own rayon pool, so that robot requests do not queue behind the
     /// tiles of long jobs.
-    sync_pool: rayon::ThreadPool,
+    pub(super) sync_pool: rayon::ThreadPool,
     /// The jobs' rayon pool, at a lower priority (see [`bridge::lower_priority`]).
-    job_pool: rayon::ThreadPool,
-    sync_slots: tokio::sync::Semaphore,
+    pub(super) job_pool: rayon::ThreadPool,
+    pub(super) sync_slots: tokio::sync::Semaphore,
     /// Synchronous requests computing at once (one per core of the synchronous pool); the others
     /// wait here in arrival order. Handing rayon more top-level work than it has threads lets a
     /// thread waiting inside one request pick up a newer one, which buries the older request
     /// under it: measured, that made the p99 latency 50× the p50.
-    sync_running: tokio::sync::Semaphore,
+    pub(super) sync_running: tokio::sync::Semaphore,
 }
 
 /// The job service handle (cheap to clone). See the [module overview](super).
@@ -412,11 +236,11 @@ impl Jobs {
         self.data_dir().join("uploads").join(format!("{id}.part"))
     }
 
-    fn shutting_down(&self) -> bool {
+    pub(super) fn shutting_down(&self) -> bool {
         *self.inner.shutdown.borrow()
     }
 
-    fn update_gauges(&self) {
+    pub(super) fn update_gauges(&self) {
         let depth = self.lock_queue().ids.len();
         let running = self.lock_running().len();
         let m = &self.inner.metrics;
@@ -424,11 +248,11 @@ impl Jobs {
         m.running.set(i64::try_from(running).unwrap_or(i64::MAX));
     }
 
-    fn lock_queue(&self) -> std::sync::MutexGuard<'_, Queue> {
+    pub(super) fn lock_queue(&self) -> std::sync::MutexGuard<'_, Queue> {
         self.inner.queue.lock().unwrap_or_else(|e| e.into_inner())
     }
 
-    fn lock_running(&self) -> std::sync::MutexGuard<'_, HashMap<String, Arc<Running>>> {
+    pub(super) fn lock_running(&self) -> std::sync::MutexGuard<'_, HashMap<String, Arc<Running>>> {
         self.inner.running.lock().unwrap_or_else(|e| e.into_inner())
     }
 
@@ -570,7 +394,7 @@ impl Jobs {
         Ok(self.with_progress(row))
     }
 
-    fn with_progress(&self, row: JobRow) -> JobInfo {
+    pub(super) fn with_progress(&self, row: JobRow) -> JobInfo {
         let progress = match row.status {
             Status::Running => Some(
                 self.lock_running()
@@ -656,7 +480,7 @@ impl Jobs {
         self.job(tenant, id).await
     }
 
-    async fn remove_job_files(&self, id: &str) {
+    pub(super) async fn remove_job_files(&self, id: &str) {
         let dir = self.job_dir(id);
         let _ = bridge::blocking(move || match std::fs::remove_dir_all(&dir) {
             Ok(()) => {}
@@ -701,228 +525,6 @@ impl Jobs {
         }
     }
 
-    async fn worker(self, mut shutdown: watch::Receiver<bool>) {
-        loop {
-            if *shutdown.borrow() {
-                break;
-            }
-            let next = self.lock_queue().ids.pop_front();
-            match next {
-                Some(id) => {
-                    self.update_gauges();
-                    self.run_job(id).await;
-                }
-                None => {
-                    tokio::select! {
-                        _ = self.inner.wake.notified() => {}
-                        changed = shutdown.changed() => if changed.is_err() { break },
-                    }
-                }
-            }
-        }
-    }
-
-    async fn run_job(&self, id: String) {
-        let i = id.clone();
-        let row = match self.db(move |s| s.job(None, &i)).await {
-            Ok(Some(r)) if r.status == Status::Accepted => r,
-            Ok(_) => return,
-            Err(e) => {
-                error!(job = %id, error = %e, "cannot read a queued job");
-                return;
-            }
-        };
-        let span = info_span!("job", id = %row.id, tenant = %row.tenant);
-        self.run_row(row).instrument(span).await;
-    }
-
-    async fn run_row(&self, row: JobRow) {
-        let id = row.id.clone();
-        let u = row.upload.clone();
-        let upload = self.db(move |s| s.upload(None, &u)).await;
-        let running = Arc::new(Running {
-            cancel: Arc::new(AtomicBool::new(false)),
-            progress: Arc::new(JobProgress::default()),
-            dismissed: AtomicBool::new(false),
-            done: watch::channel(false).0,
-        });
-        // Registered before the status changes, so that a DELETE seeing `running` finds it.
-        let _ = self.lock_running().insert(id.clone(), running.clone());
-        let started = now_ms();
-        let i = id.clone();
-        let marked = self
-            .db(move |s| s.transition(&i, Status::Accepted, Status::Running, Some(started), None))
-            .await;
-        if !matches!(marked, Ok(true)) {
-            let _ = self.lock_running().remove(&id);
-            running.done.send_replace(true);
-            return;
-        }
-        self.update_gauges();
-        let input = match upload {
-            Ok(Some(Upload {
-                format: Some(ext),
-                complete: true,
-                id: uid,
-                ..
-            })) => (self.upload_path(&uid, &ext), ext),
-            other => {
-                if let Err(e) = other {
-                    error!(error = %e, "cannot read the job's upload");
-                }
-                self.finish_failed(&id, "the input upload no longer exists")
-                    .await;
-                let _ = self.lock_running().remove(&id);
-                running.done.send_replace(true);
-                self.update_gauges();
-                return;
-            }
-        };
-        let dir = self.job_dir(&id);
-        let output = dir.join(format!("result.{}", row.spec.output_format));
-        let outcome = self.execute(&row, &input, &dir, &output, &running).await;
-        let _ = self.lock_running().remove(&id);
-        let dismissed = running.dismissed.load(Ordering::SeqCst);
-        match outcome {
-            _ if dismissed => {
-                info!("stopped: dismissed");
-                self.remove_job_files(&id).await;
-            }
-            Err(panicked) => {
-                error!(error = %panicked, "the run panicked");
-                self.finish_failed(&id, "internal error: the run panicked")
-                    .await;
-                self.remove_job_files(&id).await;
-            }
-            Ok(Ok(report)) => self.finish_success(&id, report, &dir, &output).await,
-            Ok(Err(PipelineError::Cancelled)) if self.shutting_down() => {
-                // Back in the queue of the next start; the finished tiles stay as checkpoints.
-                let i = id.clone();
-                let _ = self
-                    .db(move |s| s.transition(&i, Status::Running, Status::Accepted, None, None))
-                    .await;
-                info!("interrupted by shutdown; resumes at the next start");
-            }
-            Ok(Err(e)) => {
-                let msg = scrub(&e.to_string(), &input.0, &output, self.data_dir());
-                if client_fault(&e) {
-                    info!(error = %msg, "failed");
-                } else {
-                    error!(error = %e, "failed");
-                }
-                self.finish_failed(&id, &msg).await;
-                self.remove_job_files(&id).await;
-            }
-        }
-        running.done.send_replace(true);
-        self.update_gauges();
-    }
-
-    /// Runs the pipeline for `row` on a blocking thread.
-    async fn execute(
-        &self,
-        row: &JobRow,
-        input: &(PathBuf, String),
-        dir: &Path,
-        output: &Path,
-        running: &Running,
-    ) -> Result<Result<Report, PipelineError>, JobsError> {
-        let spec = &row.spec;
-        let job = Job {
-            input: input.0.clone(),
-            output: output.to_path_buf(),
-            input_format: format_of(&input.1).ok(),
-            output_format: Some(spec.output_format),
-            spec: spec.denoise.clone(),
-        };
-        let opts = RunOptions {
-            memory_budget: spec.memory_budget,
-            temp_dir: None,
-            tile_points: spec.tile_points,
-            progress: running.progress.clone(),
-            cancel: running.cancel.clone(),
-            work_dir: Some(dir.join("work")),
-        };
-        let dir = dir.to_path_buf();
-        info!(input = %input.1, output = %spec.output_format, tile_points = ?spec.tile_points, "started");
-        let span = tracing::Span::current();
-        let inner = self.inner.clone();
-        // The driver waits on a blocking thread; the run itself (its I/O and its kernels) happens
-        // on the job pool's lower-priority threads.
-        let run = bridge::blocking(move || {
-            inner.job_pool.install(|| {
-                span.in_scope(|| {
-                    std::fs::create_dir_all(&dir).map_err(|e| PipelineError::TempDir {
-                        path: dir.clone(),
-                        detail: e.to_string(),
-                    })?;
-                    pipeline::run(&job, &opts)
-                })
-            })
-        })
-        .await;
-        // The outer error is the bridge's: the run panicked (reported as that, not as a
-        // pipeline error it is not).
-        run
-    }
-
-    async fn finish_success(&self, id: &str, mut report: Report, dir: &Path, output: &Path) {
-        let out = output.to_path_buf();
-        let work = dir.join("work");
-        let hashed = bridge::blocking(move || {
-            let _ = std::fs::remove_dir_all(&work);
-            let size = std::fs::metadata(&out)
-                .map_err(|e| JobsError::io("stat the result", e))?
-                .len();
-            Ok::<_, JobsError>((size, sha256_file(&out)?))
-        })
-        .await
-        .and_then(|r| r);
-        let (size, sha) = match hashed {
-            Ok(x) => x,
-            Err(e) => {
-                error!(error = %e, "cannot hash the result");
-                self.finish_failed(id, "internal error while storing the result")
-                    .await;
-                self.remove_job_files(id).await;
-                return;
-            }
-        };
-        report.input = PathBuf::from("input");
-        report.output = PathBuf::from(format!(
-            "result.{}",
-            output
-                .extension()
-                .map(|e| e.to_string_lossy())
-                .unwrap_or_default()
-        ));
-        self.inner.metrics.observe("job", &report);
-        let i = id.to_string();
-        let r = report.clone();
-        let s = sha.clone();
-        match self
-            .db(move |st| st.finish_success(&i, now_ms(), &r, size, &s))
-            .await
-        {
-            Ok(true) => info!(
-                points = report.points_in,
-                tiles = report.tiles,
-                resumed = report.tiles_resumed,
-                wall_s = report.wall_s,
-                "successful"
-            ),
-            Ok(false) => self.remove_job_files(id).await,
-            Err(e) => error!(error = %e, "cannot record a successful job"),
-        }
-    }
-
-    async fn finish_failed(&self, id: &str, msg: &str) {
-        let (i, m) = (id.to_string(), msg.to_string());
-        if let Err(e) = self.db(move |s| s.finish_failure(&i, now_ms(), &m)).await {
-            error!(error = %e, "cannot record a failed job");
-        }
-    }
-
     /// Stops taking work: running jobs are cancelled at their next batch or tile (finished tiles
     /// stay as checkpoints and the jobs go back to `accepted`), then waits up to `grace` for the
     /// workers to wind down.
@@ -946,202 +548,5 @@ impl Jobs {
         for r in self.lock_running().values() {
             r.cancel.store(true, Ordering::SeqCst);
         }
-    }
-
-    // ---------------------------------------------------------------------------------------
-    // Synchronous path
-
-    /// Denoises `body` (a whole file in `req.format`) now and returns the result; the CPU work
-    /// runs on the synchronous path's rayon pool. Dropping the future cancels the run.
-    ///
-    /// # Errors
-    /// [`JobsError::Busy`] beyond `sync_concurrency` requests, [`JobsError::Invalid`] for bad
-    /// parameters, [`JobsError::BadContent`] for input the readers or the denoiser refuse.
-    pub async fn denoise_now(
-        &self,
-        body: impl AsRef<[u8]> + Send + 'static,
-        req: SyncRequest,
-    ) -> Result<SyncOutput, JobsError> {
-        if self.shutting_down() {
-            return Err(JobsError::ShuttingDown);
-        }
-        let _slot = self
-            .inner
-            .sync_slots
-            .try_acquire()
-            .map_err(|_| JobsError::Busy)?;
-        let spec = req
-            .spec
-            .resolve(self.inner.settings.outlier_alpha)
-            .map_err(spec_error)?;
-        let input_format = req.format;
-        let output_format = req.output_format.unwrap_or(input_format);
-        validate_output(spec.outliers, output_format)?;
-        let cancel = Arc::new(AtomicBool::new(false));
-        // Dropped when the client goes away before the answer: the run stops at its next check.
-        struct CancelOnDrop(Arc<AtomicBool>);
-        impl Drop for CancelOnDrop {
-            fn drop(&mut self) {
-                self.0.store(true, Ordering::Relaxed);
-            }
-        }
-        let _guard = CancelOnDrop(cancel.clone());
-        let tmp = self.data_dir().join("tmp");
-        let data_dir = self.data_dir().to_path_buf();
-        let budget = self.inner.settings.memory_budget;
-        let _running = self
-            .inner
-            .sync_running
-            .acquire()
-            .await
-            .map_err(|_| JobsError::ShuttingDown)?;
-        let run = bridge::cpu(&self.inner.sync_pool, move || {
-            let dir = tempfile::Builder::new()
-                .prefix("sync-")
-                .tempdir_in(&tmp)
-                .map_err(|e| JobsError::io("create a request directory", e))?;
-            let input = dir.path().join(format!("in.{input_format}"));
-            let output = dir.path().join(format!("out.{output_format}"));
-            std::fs::write(&input, body.as_ref())
-                .map_err(|e| JobsError::io("write the request body", e))?;
-            let job = Job {
-                input: input.clone(),
-                output: output.clone(),
-                input_format: Some(input_format),
-                output_format: Some(output_format),
-                spec,
-            };
-            let opts = RunOptions {
-                memory_budget: budget,
-                temp_dir: Some(dir.path().to_path_buf()),
-                tile_points: None,
-                progress: Arc::new(NoProgress),
-                cancel,
-                work_dir: None,
-            };
-            match pipeline::run(&job, &opts) {
-                Ok(mut report) => {
-                    let bytes =
-                        std::fs::read(&output).map_err(|e| JobsError::io("read the result", e))?;
-                    report.input = PathBuf::from("input");
-                    report.output = PathBuf::from(format!("result.{output_format}"));
-                    Ok(SyncOutput {
-                        bytes,
-                        format: output_format,
-                        report,
-                    })
-                }
-                Err(PipelineError::Params(e)) => Err(spec_error(e)),
-                Err(e) if client_fault(&e) => Err(JobsError::BadContent(scrub(
-                    &e.to_string(),
-                    &input,
-                    &output,
-                    &data_dir,
-                ))),
-                Err(e) => Err(JobsError::Internal(e.to_string())),
-            }
-        })
-        .await;
-        let m = &self.inner.metrics;
-        match &run {
-            Ok(Ok(out)) => {
-                m.observe("sync", &out.report);
-                m.sync_requests.with_label_values(&["ok"]).inc();
-            }
-            Ok(Err(JobsError::Internal(_))) | Err(_) => {
-                m.sync_requests.with_label_values(&["error"]).inc();
-            }
-            Ok(Err(_)) => m.sync_requests.with_label_values(&["rejected"]).inc(),
-        }
-        run?
-    }
-}
-
-/// Removes every entry of `dir` (best effort).
-fn clear_dir(dir: &Path) {
-    if let Ok(entries) = std::fs::read_dir(dir) {
-        for e in entries.flatten() {
-            let p = e.path();
-            let _ = if p.is_dir() {
-                std::fs::remove_dir_all(&p)
-            } else {
-                std::fs::remove_file(&p)
-            };
-        }
-    }
-}
-
-/// Start-up cleanup: job directories of dismissed or unknown jobs, `.part` files of uploads that
-/// are not resumable ones (a one-shot upload cut off by a crash), temporary files.
-fn remove_stale_files(dir: &Path, store: &Store) -> Result<(), JobsError> {
-    if let Ok(entries) = std::fs::read_dir(dir.join("jobs")) {
-        for e in entries.flatten() {
-            let name = e.file_name().to_string_lossy().into_owned();
-            let keep = valid_id(&name)
-                && store
-                    .job(None, &name)?
-                    .is_some_and(|j| j.status != Status::Dismissed);
-            if !keep {
-                let _ = std::fs::remove_dir_all(e.path());
-            }
-        }
-    }
-    let partial = store.partial_uploads()?;
-    if let Ok(entries) = std::fs::read_dir(dir.join("uploads")) {
-        for e in entries.flatten() {
-            let name = e.file_name().to_string_lossy().into_owned();
-            if let Some(id) = name.strip_suffix(".part")
-                && !partial.iter().any(|p| p == id)
-            {
-                let _ = std::fs::remove_file(e.path());
-            }
-        }
-    }
-    Ok(())
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn ids_formats_and_scrubbing() {
-        let id = new_id();
-        assert!(valid_id(&id));
-        assert!(!valid_id("../../etc/passwd"));
-        assert!(!valid_id(&id.to_uppercase()));
-        assert_eq!(canonical_format("KITTI").as_deref(), Some("bin"));
-        assert_eq!(canonical_format("laz").as_deref(), Some("laz"));
-        assert_eq!(canonical_format("txt").as_deref(), Some("xyz"));
-        assert_eq!(canonical_format("doc"), None);
-        let s = scrub(
-            "/d/uploads/x.ply: bad header; /d/jobs/y/result.ply; /d/other",
-            Path::new("/d/uploads/x.ply"),
-            Path::new("/d/jobs/y/result.ply"),
-            Path::new("/d"),
-        );
-        assert_eq!(s, "input: bad header; result; <data>/other");
-        assert_eq!(hex(&[0, 15, 255]), "000fff");
-    }
-
-    #[test]
-    fn parameter_errors_name_fields() {
-        let resolve = |o: SpecOverlay| o.resolve(2.0).map_err(spec_error);
-        match resolve(SpecOverlay {
-            knn: Some(1),
-            ..SpecOverlay::default()
-        }) {
-            Err(JobsError::Invalid { field, .. }) => assert_eq!(field, "params.knn"),
-            other => panic!("{other:?}"),
-        }
-        match resolve(SpecOverlay {
-            outlier_alpha: Some(-1.0),
-            ..SpecOverlay::default()
-        }) {
-            Err(JobsError::Invalid { field, .. }) => assert_eq!(field, "outlier_alpha"),
-            other => panic!("{other:?}"),
-        }
-        assert!(validate_output(OutlierMode::Classify, Format::Kitti).is_err());
-        assert!(validate_output(OutlierMode::Remove, Format::Kitti).is_ok());
     }
 }

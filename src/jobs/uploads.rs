@@ -18,7 +18,8 @@ use sha2::{Digest, Sha256};
 use tokio::io::AsyncWriteExt;
 use tracing::info;
 
-use super::service::{canonical_format, format_of, hex, new_id, now_ms, sha256_file, valid_id};
+use super::ids::{hex, new_id, now_ms, sha256_file, valid_id};
+use super::requests::{canonical_format, format_of};
 use super::store::Upload;
 use super::{Jobs, JobsError, bridge};
 use crate::io::sniff::{SNIFF_LEN, sniff};

@@ -1,0 +1,119 @@
+//! The synchronous path: a small scan denoised now, on the synchronous rayon pool, with nothing
+//! written to the job store.
+
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+
+use super::requests::{SyncOutput, SyncRequest, spec_error, validate_output};
+use super::run::{client_fault, scrub};
+use super::service::Jobs;
+use super::{JobsError, bridge};
+use crate::pipeline::{self, Job, NoProgress, PipelineError, RunOptions};
+
+impl Jobs {
+    /// Denoises `body` (a whole file in `req.format`) now and returns the result; the CPU work
+    /// runs on the synchronous path's rayon pool. Dropping the future cancels the run.
+    ///
+    /// # Errors
+    /// [`JobsError::Busy`] beyond `sync_concurrency` requests, [`JobsError::Invalid`] for bad
+    /// parameters, [`JobsError::BadContent`] for input the readers or the denoiser refuse.
+    pub async fn denoise_now(
+        &self,
+        body: impl AsRef<[u8]> + Send + 'static,
+        req: SyncRequest,
+    ) -> Result<SyncOutput, JobsError> {
+        if self.shutting_down() {
+            return Err(JobsError::ShuttingDown);
+        }
+        let _slot = self
+            .inner
+            .sync_slots
+            .try_acquire()
+            .map_err(|_| JobsError::Busy)?;
+        let spec = req
+            .spec
+            .resolve(self.inner.settings.outlier_alpha)
+            .map_err(spec_error)?;
+        let input_format = req.format;
+        let output_format = req.output_format.unwrap_or(input_format);
+        validate_output(spec.outliers, output_format)?;
+        let cancel = Arc::new(AtomicBool::new(false));
+        // Dropped when the client goes away before the answer: the run stops at its next check.
+        struct CancelOnDrop(Arc<AtomicBool>);
+        impl Drop for CancelOnDrop {
+            fn drop(&mut self) {
+                self.0.store(true, Ordering::Relaxed);
+            }
+        }
+        let _guard = CancelOnDrop(cancel.clone());
+        let tmp = self.data_dir().join("tmp");
+        let data_dir = self.data_dir().to_path_buf();
+        let budget = self.inner.settings.memory_budget;
+        let _running = self
+            .inner
+            .sync_running
+            .acquire()
+            .await
+            .map_err(|_| JobsError::ShuttingDown)?;
+        let run = bridge::cpu(&self.inner.sync_pool, move || {
+            let dir = tempfile::Builder::new()
+                .prefix("sync-")
+                .tempdir_in(&tmp)
+                .map_err(|e| JobsError::io("create a request directory", e))?;
+            let input = dir.path().join(format!("in.{input_format}"));
+            let output = dir.path().join(format!("out.{output_format}"));
+            std::fs::write(&input, body.as_ref())
+                .map_err(|e| JobsError::io("write the request body", e))?;
+            let job = Job {
+                input: input.clone(),
+                output: output.clone(),
+                input_format: Some(input_format),
+                output_format: Some(output_format),
+                spec,
+            };
+            let opts = RunOptions {
+                memory_budget: budget,
+                temp_dir: Some(dir.path().to_path_buf()),
+                tile_points: None,
+                progress: Arc::new(NoProgress),
+                cancel,
+                work_dir: None,
+            };
+            match pipeline::run(&job, &opts) {
+                Ok(mut report) => {
+                    let bytes =
+                        std::fs::read(&output).map_err(|e| JobsError::io("read the result", e))?;
+                    report.input = PathBuf::from("input");
+                    report.output = PathBuf::from(format!("result.{output_format}"));
+                    Ok(SyncOutput {
+                        bytes,
+                        format: output_format,
+                        report,
+                    })
+                }
+                Err(PipelineError::Params(e)) => Err(spec_error(e)),
+                Err(e) if client_fault(&e) => Err(JobsError::BadContent(scrub(
+                    &e.to_string(),
+                    &input,
+                    &output,
+                    &data_dir,
+                ))),
+                Err(e) => Err(JobsError::Internal(e.to_string())),
+            }
+        })
+        .await;
+        let m = &self.inner.metrics;
+        match &run {
+            Ok(Ok(out)) => {
+                m.observe("sync", &out.report);
+                m.sync_requests.with_label_values(&["ok"]).inc();
+            }
+            Ok(Err(JobsError::Internal(_))) | Err(_) => {
+                m.sync_requests.with_label_values(&["error"]).inc();
+            }
+            Ok(Err(_)) => m.sync_requests.with_label_values(&["rejected"]).inc(),
+        }
+        run?
+    }
+}
