@@ -1013,11 +1013,12 @@ impl Jobs {
         if self.shutting_down() {
             return Err(JobsError::ShuttingDown);
         }
-        let _slot = self
-            .inner
-            .sync_slots
-            .try_acquire()
-            .map_err(|_| JobsError::Busy)?;
+        let _slot = self.inner.sync_slots.try_acquire().map_err(|_| {
+            // A 429 is a rejected request too (issue 15: it was not counted).
+            let m = &self.inner.metrics;
+            m.sync_requests.with_label_values(&["rejected"]).inc();
+            JobsError::Busy
+        })?;
         let alpha = req
             .outlier_alpha
             .unwrap_or(self.inner.settings.outlier_alpha);

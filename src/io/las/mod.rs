@@ -78,10 +78,14 @@
 //!
 //! # Writing anything else as LAS
 //!
-//! A source of another format ([`Meta::None`], PLY, …) is written as **LAS 1.4, PDRF 6**, global
-//! encoding 0x10 (WKT; no CRS is known), system identifier `OTHER`, generating software `qemd`,
-//! today's date, legacy counts zero. Every non-xyz field of the source schema becomes an extra
-//! byte field of the same type and name, described by an Extra Bytes VLR, so nothing is lost.
+//! A source of another format ([`Meta::None`], PLY, …) is written as **LAS 1.4, PDRF 6** (7 with
+//! RGB, 8 with NIR), global encoding 0x10 (WKT; no CRS is known), system identifier `OTHER`,
+//! generating software `qemd`, today's date, legacy counts zero. Fields of well-known names
+//! (`intensity`, `classification`, `gps_time`, `red`/`green`/`blue`, …) whose type the LAS
+//! dimension holds exactly become that dimension (table in `foreign`); every other non-xyz field
+//! becomes an extra byte field of the same type, described by an Extra Bytes VLR, so nothing is
+//! lost, under its own name unless a dimension or an earlier field has it (then `extra_<name>`):
+//! no name occurs twice (issue 15).
 //!
 //! The sink only sees positions batch by batch, so the frame is chosen from the **first batch**:
 //! with `E` the largest extent along an axis, the scale (common to x, y, z) is the power of ten
@@ -112,6 +116,7 @@
 
 mod chunks;
 mod copc;
+mod foreign;
 mod layout;
 mod sink;
 mod source;
