@@ -270,7 +270,8 @@ pub async fn patch(
     let offset = header_u64(&headers, "upload-offset")?
         .ok_or_else(|| ApiError::BadRequest("PATCH needs an Upload-Offset header".into()))?;
     let q: UploadQuery = parse_query(query)?;
-    let hint = (q.format.is_some() || q.filename.is_some()).then(|| FormatHint {
+    let named = q.format.is_some() || q.filename.is_some();
+    let hint = named.then_some(FormatHint {
         format: q.format,
         filename: q.filename,
     });

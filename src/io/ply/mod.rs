@@ -543,7 +543,7 @@ fn more_vertices(
 ) -> Result<(), IoError> {
     let extra = if encoding.is_binary() {
         match vertex.record_len() {
-            Some(rl) if rl > 0 && !trailing.is_empty() && trailing.len() % rl == 0 => {
+            Some(rl) if rl > 0 && !trailing.is_empty() && trailing.len().is_multiple_of(rl) => {
                 trailing.len() / rl
             }
             _ => 0,
