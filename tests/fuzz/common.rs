@@ -94,7 +94,11 @@ pub fn pcd_body(data: &[u8]) {
 /// LAS and LAZ (COPC read as LAZ): the header says which.
 pub fn las(data: &[u8]) {
     let compressed = data.get(104).is_some_and(|f| f & 0x80 != 0);
-    read_write(if compressed { "in.laz" } else { "in.las" }, Format::Las, data);
+    read_write(
+        if compressed { "in.laz" } else { "in.las" },
+        Format::Las,
+        data,
+    );
 }
 
 /// Wavefront OBJ.

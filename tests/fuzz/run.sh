@@ -14,7 +14,10 @@ if [ ${#targets[@]} -eq 0 ]; then
   targets=(ply pcd pcd_body las obj off text raw sniff)
 fi
 export RUSTC_BOOTSTRAP=1
-python3 tests/fuzz/seeds.py "${QEMD_SHARED_DATA:-../shared/data}" > /dev/null
+# The seed corpus is made once (a run adds what it finds; delete tests/fuzz/corpus to reseed).
+if [ ! -d tests/fuzz/corpus ]; then
+  python3 tests/fuzz/seeds.py "${QEMD_SHARED_DATA:-../shared/data}" > /dev/null
+fi
 cargo fuzz build --fuzz-dir tests/fuzz -s none > /dev/null
 status=0
 for t in "${targets[@]}"; do
