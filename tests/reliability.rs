@@ -721,3 +721,57 @@ fn issue15_plain_solve_with_the_default_schedule_is_refused() {
     );
     assert!(out.exists());
 }
+
+/// Issue 15, fuzzing (`las` target, 2026-12-02): a GPS time whose bit pattern jumps across
+/// the sign (the fuzzer flipped bits of one in a LAZ) makes the integer difference of the LAZ
+/// GPS-time coder overflow (`laz` `gps.rs:647`), a panic under the fuzz build's overflow checks.
+/// LASzip's arithmetic wraps, and so do qemd's builds (the `laz` profile settings): such files
+/// must round-trip through LAZ exactly. (Both sequences below panic the `-a` fuzz build.)
+#[test]
+fn issue15_fuzz_laz_gps_time_jump_round_trips() {
+    let dir = tempfile::tempdir().unwrap();
+    let jump = |i: usize| {
+        if i == 50 {
+            f64::from_bits(0x8ddf_b70c_640e_f39a)
+        } else {
+            f64::from_bits(0x417b_a0a7_4cc9_0000 + 97 * i as u64)
+        }
+    };
+    let extremes = |i: usize| {
+        f64::from_bits(
+            [
+                0xffef_ffff_ffff_ffff,
+                0xffef_ffff_ffff_fffe,
+                0x7fef_ffff_ffff_ffff,
+            ][i % 3],
+        )
+    };
+    for (name, gps) in [
+        ("jump", &jump as &dyn Fn(usize) -> f64),
+        ("extremes", &extremes),
+    ] {
+        let mut b = las_pdrf1(100);
+        for i in 0..100 {
+            let at = 227 + 28 * i + 20;
+            b[at..at + 8].copy_from_slice(&gps(i).to_le_bytes());
+        }
+        let las = dir.path().join(format!("{name}.las"));
+        std::fs::write(&las, &b).unwrap();
+        let laz = dir.path().join(format!("{name}.laz"));
+        let c = Cloud::read(&las, None).unwrap();
+        c.write(&laz, None).unwrap();
+        let back = Cloud::read(&laz, None).unwrap();
+        assert!(
+            back.records == c.records,
+            "{name}: the records differ after LAZ"
+        );
+        assert_eq!(back.positions, c.positions, "{name}");
+        // And once more through LAZ → LAZ, as the fuzz target did.
+        let again = dir.path().join(format!("{name}2.laz"));
+        back.write(&again, None).unwrap();
+        assert!(
+            Cloud::read(&again, None).unwrap().records == c.records,
+            "{name}"
+        );
+    }
+}
