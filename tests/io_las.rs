@@ -550,7 +550,7 @@ fn generated_and_foreign_clouds_become_las_1_4_pdrf_6() {
     let s = &r.info.schema;
     assert_eq!(s.record_len, 30 + 4 + 2);
     let (fi, fl) = (
-        s.field_index("intensity_2").unwrap(),
+        s.field_index("extra_intensity").unwrap(),
         s.field_index("label").unwrap(),
     );
     for i in 0..3 {

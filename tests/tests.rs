@@ -20,6 +20,7 @@ mod knn_bounds;
 mod operator;
 mod raw_bin;
 mod real_data;
+mod reliability;
 mod resume;
 mod seams;
 mod server;

@@ -9,7 +9,10 @@
 //! * `PATCH /v1/uploads/{id}` with `Content-Type: application/offset+octet-stream` and
 //!   `Upload-Offset` equal to the server's offset appends the body (204 with the new
 //!   `Upload-Offset`); a wrong offset answers 409 with the server's. The last byte triggers
-//!   hashing and validation.
+//!   hashing and validation. A finished upload that fails validation (415 when its format cannot
+//!   be told, 422 when it is not a valid file) is kept with all its bytes: a PATCH with
+//!   `?format=` (or `?filename=`), `Upload-Offset` at the full length and an empty body
+//!   validates it again.
 //! * `HEAD`/`GET /v1/uploads/{id}`: `Upload-Offset`, `Upload-Length` (and the JSON view).
 //! * `DELETE /v1/uploads/{id}`: removes it (409 while a queued or running job reads it).
 
@@ -255,6 +258,7 @@ pub async fn patch(
     State(state): State<AppState>,
     Extension(Tenant(tenant)): Extension<Tenant>,
     Path(id): Path<String>,
+    RawQuery(query): RawQuery,
     headers: HeaderMap,
     body: Body,
 ) -> Result<Response, ApiError> {
@@ -265,9 +269,15 @@ pub async fn patch(
     }
     let offset = header_u64(&headers, "upload-offset")?
         .ok_or_else(|| ApiError::BadRequest("PATCH needs an Upload-Offset header".into()))?;
+    let q: UploadQuery = parse_query(query)?;
+    let named = q.format.is_some() || q.filename.is_some();
+    let hint = named.then_some(FormatHint {
+        format: q.format,
+        filename: q.filename,
+    });
     let u = state
         .jobs
-        .append(&tenant, &id, offset, body.into_data_stream())
+        .append(&tenant, &id, offset, hint, body.into_data_stream())
         .await?;
     Ok(with_headers(StatusCode::NO_CONTENT, tus_headers(&u), None))
 }

@@ -340,6 +340,40 @@ impl Params {
         Ok(())
     }
 
+    /// Checks what [`Params::validate`] cannot know before the input is read: in mesh mode, the
+    /// plain solve (no step bound) with more than one update in all, and no `--max-move`, is
+    /// refused — repeated updates amplify its drift along nearly flat directions (the default
+    /// schedule moved vertices of the shared bunny 1,523 L away; issue 15).
+    ///
+    /// # Errors
+    /// [`DenoiseError::Param`] naming `solve`.
+    pub fn check_mode(&self, mesh: bool) -> Result<(), DenoiseError> {
+        let s = self.schedule(true);
+        let single = s.updates == 1 && s.cycles == 1;
+        if mesh
+            && self.method == Method::Qem
+            && self.solve == SolveKind::Plain
+            && !single
+            && self.max_move.is_none()
+        {
+            return Err(DenoiseError::Param {
+                name: "solve",
+                detail: format!(
+                    "plain has no step bound and drifts over repeated updates on a mesh ({} \
+                     updates × {} cycles asked); use it with --paper (or --updates 1 \
+                     --iterations 1), bound it with --max-move, or keep the default damped solve",
+                    s.updates,
+                    if s.cycles == 0 {
+                        "adaptive".to_string()
+                    } else {
+                        s.cycles.to_string()
+                    }
+                ),
+            });
+        }
+        Ok(())
+    }
+
     /// True when these parameters run in mesh mode on an input with (`has_faces`) or without faces.
     pub fn mesh_mode(&self, has_faces: bool) -> bool {
         has_faces && self.knn.is_none()
@@ -382,6 +416,7 @@ pub fn denoise(
     }
     match faces {
         Some(f) if params.mesh_mode(true) => {
+            params.check_mode(true)?;
             if let Some(i) = positions.iter().position(|p| !p.is_finite()) {
                 return Err(DenoiseError::NonFiniteVertex { index: i });
             }
@@ -411,6 +446,39 @@ pub fn denoise(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Issue 15, item 7: the plain solve on a mesh only with one update (the paper), or a cap.
+    #[test]
+    fn issue15_plain_solve_on_a_mesh_needs_one_update_or_a_cap() {
+        let pos = [DVec3::ZERO, DVec3::X, DVec3::Y, DVec3::new(1.0, 1.0, 0.1)];
+        let faces = Faces::from_triangles(&[[0, 1, 2], [1, 3, 2]]);
+        let plain = Params {
+            solve: SolveKind::Plain,
+            ..Params::default()
+        };
+        let e = denoise(&pos, Some(&faces), &plain).unwrap_err();
+        assert!(
+            matches!(e, DenoiseError::Param { name: "solve", .. }),
+            "{e}"
+        );
+        assert!(e.to_string().contains("--paper"), "{e}");
+        // The paper, one update with the default planes, a cap, or point mode: accepted.
+        for p in [
+            Params::paper(),
+            Params {
+                updates: Some(1),
+                iterations: 1,
+                ..plain
+            },
+            Params {
+                max_move: Some(0.1),
+                ..plain
+            },
+        ] {
+            assert!(p.check_mode(true).is_ok(), "{p:?}");
+        }
+        assert!(plain.check_mode(false).is_ok());
+    }
 
     #[test]
     fn params_validation_names_the_field() {

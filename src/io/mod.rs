@@ -714,7 +714,11 @@ impl Cloud {
     pub fn read(path: &Path, format: Option<Format>) -> Result<Cloud, IoError> {
         let mut src = open(path, format)?;
         let info = src.info().clone();
-        let cap = info.len.unwrap_or(0).min(1 << 28) as usize;
+        // The declared length is untrusted (a LAZ header can claim billions of points in a few
+        // bytes): the reservation is also held to one point per byte of the file; a cloud that
+        // is really larger grows as it is read.
+        let file_len = std::fs::metadata(path).map_or(1 << 20, |m| m.len());
+        let cap = info.len.unwrap_or(0).min(1 << 28).min(file_len) as usize;
         let rl = info.schema.record_len;
         let mut positions = Vec::with_capacity(cap);
         let mut records = Vec::with_capacity(cap * rl);

@@ -9,7 +9,7 @@
 //! | `ply` line | `ply` |
 //! | `ASTM-E57` signature | `e57` |
 //! | `LASF` signature, compression bits of the point format clear / set | `las` / `laz` |
-//! | first keyword line of a PCD header (`VERSION`, `FIELDS`, …), or `# .PCD` | `pcd` |
+//! | first keyword line of a PCD header (`VERSION`, `FIELDS`, …), or `# .PCD`; for a binary body, the header lines up to `DATA binary…` (after any comments) | `pcd` |
 //! | first token `OFF`, `COFF`, `NOFF`, `CNOFF`, `STOFF` … | `off` |
 //! | lines starting `v `, `f `, `vn `, `o `, `g `… (with at least one `v`) | `obj` |
 //! | a lone count line, then lines of ≥ 3 numbers | `pts` |
@@ -26,6 +26,24 @@ pub const SNIFF_LEN: usize = 4096;
 /// Byte offset of the point data record format in a LAS public header.
 const LAS_FORMAT_OFFSET: usize = 104;
 
+/// The keywords of PCD header lines.
+const PCD: [&str; 9] = [
+    "VERSION", "FIELDS", "COLUMNS", "SIZE", "TYPE", "COUNT", "WIDTH", "HEIGHT", "POINTS",
+];
+
+/// The text before a PCD body: everything up to and including a line starting `DATA binary`
+/// (binary or binary_compressed), when that text is UTF-8.
+fn pcd_header(head: &[u8]) -> Option<&str> {
+    let mut at = 0;
+    for line in head.split_inclusive(|&b| b == b'\n') {
+        at += line.len();
+        if line.starts_with(b"DATA binary") {
+            return std::str::from_utf8(&head[..at]).ok();
+        }
+    }
+    None
+}
+
 /// The format of content starting with `head` (PLY, LAS, LAZ, E57, PCD in any of its three
 /// encodings, OFF, OBJ, PTS, XYZ), or `None`. A COPC file sniffs as the LAZ file it is.
 pub fn sniff(head: &[u8]) -> Option<Format> {
@@ -40,12 +58,16 @@ pub fn sniff(head: &[u8]) -> Option<Format> {
         let compressed = head.get(LAS_FORMAT_OFFSET).is_some_and(|f| f & 0xC0 != 0);
         return Some(if compressed { Format::Laz } else { Format::Las });
     }
-    // A binary PCD body follows its text header: judge the header by its first line.
-    let first_line = head.split(|&b| b == b'\n').next().unwrap_or_default();
-    if let Ok(line) = std::str::from_utf8(first_line) {
-        let line = line.trim();
-        let keyword = line.split_whitespace().next().unwrap_or_default();
-        if line.starts_with("# .PCD") || ["VERSION", "FIELDS"].contains(&keyword) {
+    // A binary PCD body follows its text header: judge the header alone, the lines before the
+    // body (the bytes after `DATA binary` are not text).
+    if let Some(header) = pcd_header(head) {
+        let mut lines = header.lines().map(str::trim).filter(|l| !l.is_empty());
+        let first = lines.clone().next().unwrap_or_default();
+        let keyword = lines
+            .find(|l| !l.starts_with('#'))
+            .and_then(|l| l.split_whitespace().next())
+            .unwrap_or_default();
+        if first.starts_with("# .PCD") || PCD.contains(&keyword) {
             return Some(Format::Pcd);
         }
     }
@@ -65,9 +87,6 @@ pub fn sniff(head: &[u8]) -> Option<Format> {
         return Some(Format::Pcd);
     }
     let keyword = first.split_whitespace().next()?.to_ascii_uppercase();
-    const PCD: [&str; 9] = [
-        "VERSION", "FIELDS", "COLUMNS", "SIZE", "TYPE", "COUNT", "WIDTH", "HEIGHT", "POINTS",
-    ];
     if PCD.contains(&keyword.as_str()) {
         return Some(Format::Pcd);
     }
@@ -138,6 +157,34 @@ mod tests {
         pcd.extend_from_slice(&[0xff, 0xfe, 0x80, 0x81]);
         pcd.resize(super::SNIFF_LEN, 0x9f);
         assert_eq!(sniff(&pcd), Some(Format::Pcd));
+    }
+
+    /// Issue 15, item 4: binary and binary_compressed PCD are told by their header alone, also
+    /// when it opens with other comments or its keywords in another order.
+    #[test]
+    fn issue15_binary_pcd_by_content() {
+        for (head, data) in [
+            (
+                "# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\n",
+                "binary",
+            ),
+            (
+                "# made by a scanner\n# second comment\nFIELDS x y z\n",
+                "binary_compressed",
+            ),
+            ("WIDTH 2\nHEIGHT 1\nFIELDS x y z\n", "binary"),
+        ] {
+            let mut pcd =
+                format!("{head}SIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nPOINTS 2\nDATA {data}\n")
+                    .into_bytes();
+            pcd.extend_from_slice(&[0x80, 0xff, 0x00, 0x3f, 0xc0, 0x0a, 0xfe]);
+            pcd.resize(pcd.len() + 100, 0xaa);
+            assert_eq!(sniff(&pcd), Some(Format::Pcd), "{head}");
+        }
+        // A binary body after lines that are not a PCD header is not PCD.
+        let mut other = b"# hello\nsomething else\nDATA binary\n".to_vec();
+        other.extend_from_slice(&[0xff, 0xfe]);
+        assert_eq!(sniff(&other), None);
     }
 
     #[test]

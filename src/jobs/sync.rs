@@ -26,11 +26,12 @@ impl Jobs {
         if self.shutting_down() {
             return Err(JobsError::ShuttingDown);
         }
-        let _slot = self
-            .inner
-            .sync_slots
-            .try_acquire()
-            .map_err(|_| JobsError::Busy)?;
+        let _slot = self.inner.sync_slots.try_acquire().map_err(|_| {
+            // A 429 is a rejected request too (issue 15: it was not counted).
+            let m = &self.inner.metrics;
+            m.sync_requests.with_label_values(&["rejected"]).inc();
+            JobsError::Busy
+        })?;
         let spec = req
             .spec
             .resolve(self.inner.settings.outlier_alpha)

@@ -9,7 +9,9 @@
 //!   the start with its declared length; each PATCH appends at the offset the server has (the
 //!   `.part` file's length, which survives restarts) and an interrupted PATCH keeps the bytes it
 //!   delivered. When the last byte arrives the file is hashed, sniffed and validated like a
-//!   one-request upload.
+//!   one-request upload; if that fails (format unknown or content invalid) the upload is kept,
+//!   all its bytes, and the error says how to name its format (issue 15: a finished upload is
+//!   never thrown away).
 
 use std::path::{Path, PathBuf};
 
@@ -86,12 +88,24 @@ struct Inspected {
     faces: Option<u64>,
 }
 
+/// What happens to the bytes of an upload that fails validation.
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum OnFailure {
+    /// Removed (a one-request upload: the client still holds the body it just sent).
+    Remove,
+    /// Kept as the `.part` file (a finished resumable upload: the client may have sent it over
+    /// hours and may no longer hold it; it can name the format and try again).
+    Keep,
+}
+
 /// Picks the format of the complete file `part` (declared, else sniffed), moves it to its final
-/// name `<id>.<ext>` and opens it with the format's reader. On failure the file is removed.
+/// name `<id>.<ext>` and opens it with the format's reader. On failure the file is removed or
+/// moved back to `part`, as `on_failure` says.
 fn inspect(
     part: &Path,
     final_of: impl Fn(&str) -> PathBuf,
     declared: Option<String>,
+    on_failure: OnFailure,
 ) -> Result<(Inspected, PathBuf), JobsError> {
     use std::io::Read;
     let mut head = Vec::with_capacity(SNIFF_LEN);
@@ -106,7 +120,9 @@ fn inspect(
         (Some(d), _) => d,
         (None, Some(s)) => s.to_string(),
         (None, None) => {
-            let _ = std::fs::remove_file(part);
+            if on_failure == OnFailure::Remove {
+                let _ = std::fs::remove_file(part);
+            }
             return Err(JobsError::UnsupportedFormat(
                 "cannot tell the format from the content; name it with ?format= (ply, las, laz, \
                  pcd, obj, off, xyz, pts or bin)"
@@ -114,14 +130,22 @@ fn inspect(
             ));
         }
     };
+    let format = format_of(&ext)?;
     let path = final_of(&ext);
     std::fs::rename(part, &path).map_err(|e| JobsError::io("store an upload", e))?;
     let fail = |msg: String| {
-        let _ = std::fs::remove_file(&path);
+        match on_failure {
+            OnFailure::Remove => {
+                let _ = std::fs::remove_file(&path);
+            }
+            OnFailure::Keep => {
+                let _ = std::fs::rename(&path, part);
+            }
+        }
         let shown = msg.replace(&path.display().to_string(), "upload");
         JobsError::BadContent(format!("not a valid {ext} file: {shown}"))
     };
-    let mut src = match crate::io::open(&path, Some(format_of(&ext)?)) {
+    let mut src = match crate::io::open(&path, Some(format)) {
         Ok(s) => s,
         Err(e) => return Err(fail(e.to_string())),
     };
@@ -214,9 +238,15 @@ impl Jobs {
         let sha = hex(&hasher.finalize());
         let me = self.clone();
         let uid = id.clone();
-        let (inspected, path) =
-            bridge::blocking(move || inspect(&part, |ext| me.upload_path(&uid, ext), declared))
-                .await??;
+        let (inspected, path) = bridge::blocking(move || {
+            inspect(
+                &part,
+                |ext| me.upload_path(&uid, ext),
+                declared,
+                OnFailure::Remove,
+            )
+        })
+        .await??;
         guard.0 = Some(path);
         let upload = Upload {
             id,
@@ -312,16 +342,22 @@ impl Jobs {
     /// received before a broken connection are kept. When the upload is complete it is hashed,
     /// sniffed and validated.
     ///
+    /// `hint`, when given, replaces the format hint of the creation request. A finished upload
+    /// that fails validation (its format cannot be told, or it is not a valid file of its
+    /// format) is **kept**, all its bytes, still incomplete: a PATCH with an empty body at its
+    /// full length and a new `hint` validates it again; DELETE removes it.
+    ///
     /// # Errors
     /// [`JobsError::NotFound`], [`JobsError::Conflict`] (offset mismatch, already complete, a
     /// concurrent PATCH), [`JobsError::TooLarge`] beyond the declared length,
     /// [`JobsError::BadRequest`] when the body breaks off, and on completion the errors of
-    /// validation (the upload is then deleted).
+    /// validation (saying that the upload is kept and how to name its format).
     pub async fn append<S, B, E>(
         &self,
         tenant: &str,
         id: &str,
         offset: u64,
+        hint: Option<super::FormatHint>,
         mut body: S,
     ) -> Result<Upload, JobsError>
     where
@@ -329,7 +365,10 @@ impl Jobs {
         B: AsRef<[u8]>,
         E: std::fmt::Display,
     {
-        let upload = self.upload(tenant, id).await?;
+        if let Some(h) = &hint {
+            check_hint(h)?;
+        }
+        let mut upload = self.upload(tenant, id).await?;
         if upload.complete {
             return Err(JobsError::Conflict {
                 detail: format!("upload {id} is already complete"),
@@ -401,8 +440,15 @@ impl Jobs {
         if let Some(e) = broken {
             return Err(e);
         }
-        let mut upload = upload;
         upload.size = size;
+        if let Some(h) = hint {
+            // Recorded before validation, so a restart or a retry sees the client's choice.
+            (upload.hint, upload.filename) =
+                (h.format.or(upload.hint), h.filename.or(upload.filename));
+            let mut row = upload.clone();
+            row.size = 0;
+            self.db(move |s| s.put_upload(&row)).await?;
+        }
         if size < length {
             return Ok(upload);
         }
@@ -416,7 +462,12 @@ impl Jobs {
         let done = bridge::blocking(move || {
             let sha = sha256_file(&part)?;
             let declared = declared(&hint)?;
-            let (inspected, _) = inspect(&part, |ext| me.upload_path(&uid, ext), declared)?;
+            let (inspected, _) = inspect(
+                &part,
+                |ext| me.upload_path(&uid, ext),
+                declared,
+                OnFailure::Keep,
+            )?;
             Ok::<_, JobsError>((sha, inspected))
         })
         .await?;
@@ -433,11 +484,21 @@ impl Jobs {
                 Ok(upload)
             }
             Err(e) => {
-                // Invalid content: the upload is gone (its file already is).
-                let i = id.to_string();
-                let _ = tokio::fs::remove_file(self.part_path(id)).await;
-                self.db(move |s| s.delete_upload(&i)).await?;
-                Err(e)
+                // Every byte stays in the `.part` file, the row stays incomplete: the client
+                // names the format (or deletes the upload); nothing it sent is lost.
+                let kept = |m: String| {
+                    format!(
+                        "{m}; upload {id} is kept with all {length} bytes: name its format with \
+                         PATCH /v1/uploads/{id}?format=… (Upload-Offset: {length}, empty body) \
+                         or DELETE it"
+                    )
+                };
+                info!(upload = id, tenant, error = %e, "finished upload kept, not valid as it is");
+                Err(match e {
+                    JobsError::UnsupportedFormat(m) => JobsError::UnsupportedFormat(kept(m)),
+                    JobsError::BadContent(m) => JobsError::BadContent(kept(m)),
+                    e => e,
+                })
             }
         }
     }

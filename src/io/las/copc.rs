@@ -42,7 +42,6 @@
 //!   about 40 bytes per point); the scratch LAS file is on disk beside the target and removed.
 
 use std::io::{Cursor, Seek, SeekFrom, Write};
-use std::panic::{AssertUnwindSafe, catch_unwind};
 use std::path::{Path, PathBuf};
 
 use laz::laszip::{ChunkTable, ChunkTableEntry};
@@ -53,7 +52,7 @@ use rustc_hash::FxHashSet;
 use super::layout::{
     self, BASE_LEN, at, get_f64, get_i32, get_u16, put, standard_fields, vlr_bytes,
 };
-use super::{LASZIP_RECORD, LASZIP_USER, LasSink, LasSource, LasVlr, Piece};
+use super::{LASZIP_RECORD, LASZIP_USER, LasSink, LasSource, LasVlr, Piece, quietly};
 use crate::io::{AtomicFile, Extras, IoError, Sink, SinkOptions, Source, SourceInfo, Trailer};
 use crate::points::PointBatch;
 
@@ -353,7 +352,7 @@ fn build_octree(xyz: &[[i32; 3]], scale: [f64; 3], offset: [f64; 3]) -> (Cube, V
 
 /// Compresses `records` as one LAZ chunk with `vlr`.
 fn compress_chunk(vlr: &LazVlr, records: &[u8]) -> std::io::Result<Vec<u8>> {
-    catch_unwind(AssertUnwindSafe(|| {
+    quietly(|| {
         let mut c = LasZipCompressor::new(Cursor::new(Vec::new()), vlr.clone())
             .map_err(std::io::Error::other)?;
         c.compress_many(records)?;
@@ -362,8 +361,8 @@ fn compress_chunk(vlr: &LazVlr, records: &[u8]) -> std::io::Result<Vec<u8>> {
         // [offset to the chunk table][the chunk][the chunk table]
         let table = i64::from_le_bytes(bytes[..8].try_into().expect("8 bytes")) as usize;
         Ok(bytes[8..table].to_vec())
-    }))
-    .unwrap_or_else(|_| Err(std::io::Error::other("the LAZ compressor failed")))
+    })
+    .unwrap_or_else(|()| Err(std::io::Error::other("the LAZ compressor failed")))
 }
 
 /// Reads the scratch LAS file at `points` and writes it as COPC into `out`.

@@ -19,7 +19,10 @@
 //!   direction ever holds the whole file. For LAZ the point count is checked against the chunk
 //!   table: exactly for variable-size chunks (COPC), to within the last chunk for fixed-size ones
 //!   (a smaller excess is caught only if the compressed data runs out, as in LASzip itself). The
-//!   LAZ codec runs under `catch_unwind`: corrupt data that makes it panic is reported as an error.
+//!   LAZ codec runs under `catch_unwind` with the panic hook silenced: corrupt data that makes it
+//!   panic is reported as a one-line error, with no panic message or backtrace on stderr. Framing the
+//!   codec trusts is checked before it decodes (see `chunks`): layer sizes that do not fit in their
+//!   chunk (they would size its buffers) and a compressor type that disagrees with the items.
 //! * Positions are decoded in f64 with the file's own scale and offset: `x = X·scale + offset`.
 //! * [`LasSink`] writes the points of a batch as raw records: every byte of a record travels through
 //!   unchanged except X, Y and Z, which are quantised with the *file's* scale and offset,
@@ -75,10 +78,14 @@
 //!
 //! # Writing anything else as LAS
 //!
-//! A source of another format ([`Meta::None`], PLY, …) is written as **LAS 1.4, PDRF 6**, global
-//! encoding 0x10 (WKT; no CRS is known), system identifier `OTHER`, generating software `qemd`,
-//! today's date, legacy counts zero. Every non-xyz field of the source schema becomes an extra
-//! byte field of the same type and name, described by an Extra Bytes VLR, so nothing is lost.
+//! A source of another format ([`Meta::None`], PLY, …) is written as **LAS 1.4, PDRF 6** (7 with
+//! RGB, 8 with NIR), global encoding 0x10 (WKT; no CRS is known), system identifier `OTHER`,
+//! generating software `qemd`, today's date, legacy counts zero. Fields of well-known names
+//! (`intensity`, `classification`, `gps_time`, `red`/`green`/`blue`, …) whose type the LAS
+//! dimension holds exactly become that dimension (table in `foreign`); every other non-xyz field
+//! becomes an extra byte field of the same type, described by an Extra Bytes VLR, so nothing is
+//! lost, under its own name unless a dimension or an earlier field has it (then `extra_<name>`):
+//! no name occurs twice (issue 15).
 //!
 //! The sink only sees positions batch by batch, so the frame is chosen from the **first batch**:
 //! with `E` the largest extent along an axis, the scale (common to x, y, z) is the power of ten
@@ -107,14 +114,18 @@
 //! [`AtomicFile`]: crate::io::AtomicFile
 //! [`Sink::finish`]: crate::io::Sink::finish
 
+mod chunks;
 mod copc;
+mod foreign;
 mod layout;
 mod sink;
 mod source;
 
+use std::cell::Cell;
 use std::io::{Read, Seek, SeekFrom};
 use std::panic::{AssertUnwindSafe, catch_unwind};
 use std::path::Path;
+use std::sync::Once;
 
 use glam::DVec3;
 
@@ -345,8 +356,31 @@ fn laz_io_error(path: &Path, e: std::io::Error) -> IoError {
 
 /// Runs LAZ code that may panic on corrupt input, turning a panic into an error.
 fn guarded<T>(path: &Path, f: impl FnOnce() -> Result<T, IoError>) -> Result<T, IoError> {
-    catch_unwind(AssertUnwindSafe(f))
-        .unwrap_or_else(|_| Err(IoError::invalid(path, "corrupt LAZ data")))
+    quietly(f).unwrap_or_else(|()| Err(IoError::invalid(path, "corrupt LAZ data")))
+}
+
+thread_local! {
+    /// Set while [`quietly`] runs on this thread: its panics are caught, not reported.
+    static QUIET: Cell<bool> = const { Cell::new(false) };
+}
+
+/// Runs `f`, catching a panic without the panic hook printing it (message and backtrace): the
+/// caller turns it into a one-line error. Panics elsewhere, on other threads or outside `f`,
+/// still reach the previous hook.
+fn quietly<T>(f: impl FnOnce() -> T) -> Result<T, ()> {
+    static HOOK: Once = Once::new();
+    HOOK.call_once(|| {
+        let previous = std::panic::take_hook();
+        std::panic::set_hook(Box::new(move |info| {
+            if !QUIET.with(Cell::get) {
+                previous(info);
+            }
+        }));
+    });
+    let was = QUIET.replace(true);
+    let r = catch_unwind(AssertUnwindSafe(f));
+    QUIET.set(was);
+    r.map_err(|_| ())
 }
 
 /// Reads exactly `len` bytes at `offset`.

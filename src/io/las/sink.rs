@@ -7,6 +7,7 @@ use std::path::{Path, PathBuf};
 use glam::DVec3;
 use laz::{LasZipCompressor, LazVlr, LazVlrBuilder};
 
+use super::foreign::{self, Slot};
 use super::layout::{
     self, BASE_LEN, VLR_HEADER, at, classification_byte, get_f64, get_i32, get_u16, get_u32,
     get_u64, is_extended, put, return_number, vlr_bytes,
@@ -28,8 +29,9 @@ enum Out {
 enum Conv {
     /// The source record is a LAS record of this layout: copy it, rewrite X, Y, Z.
     Same,
-    /// Another layout: a fresh PDRF 6 record; `(source field, target offset)` per extra field.
-    Foreign(Vec<(usize, usize)>),
+    /// Another layout: a fresh PDRF 6–8 record; `(source field, target offset)` per extra
+    /// field, `(source field, slot)` per field mapped onto a core dimension.
+    Foreign(Vec<(usize, usize)>, Vec<(usize, Slot)>),
 }
 
 /// What a sink writes before the points, and how.
@@ -348,17 +350,16 @@ impl LasSink {
     /// The plan for a source of another format: LAS 1.4 PDRF 6 plus one extra field per non-xyz
     /// field of `schema`.
     fn fresh(path: &Path, schema: &Schema, compress: bool) -> Result<Plan, IoError> {
-        let format = 6u8;
-        let base = BASE_LEN[6];
+        let mapping = foreign::map(schema);
+        let format = mapping.format;
+        let base = BASE_LEN[usize::from(format)];
         let mut extras = Vec::new();
         let mut descriptors = Vec::new();
         let mut at_ = base;
-        for (i, f) in schema.fields.iter().enumerate() {
-            if schema.xyz.contains(&i) {
-                continue;
-            }
-            extras.push((i, at_));
-            descriptors.extend_from_slice(&layout::extra_descriptor(&f.name, f.ty));
+        for (i, name) in &mapping.extras {
+            let f = &schema.fields[*i];
+            extras.push((*i, at_));
+            descriptors.extend_from_slice(&layout::extra_descriptor(name, f.ty));
             at_ += f.ty.size();
         }
         let record_len = u16::try_from(at_).map_err(|_| IoError::Unsupported {
@@ -416,7 +417,7 @@ impl LasSink {
             header: h,
             vlrs: block,
             vlr_count: n,
-            conv: Conv::Foreign(extras),
+            conv: Conv::Foreign(extras, mapping.core),
             frame: None,
             legacy: false,
             laz,
@@ -459,7 +460,7 @@ impl Sink for LasSink {
             let src = batch.record(i);
             match &self.conv {
                 Conv::Same => self.buf.extend_from_slice(src),
-                Conv::Foreign(extras) => {
+                Conv::Foreign(extras, core) => {
                     self.buf.resize(start + rl, 0);
                     for &(f, to) in extras {
                         let field = &self.like.fields[f];
@@ -469,6 +470,19 @@ impl Sink for LasSink {
                         if self.like.endian == Endian::Big {
                             dst.reverse();
                         }
+                    }
+                    for &(f, slot) in core {
+                        let v = self.like.get_f64(src, f);
+                        foreign::store(&mut self.buf[start..start + rl], slot, v).map_err(|e| {
+                            IoError::invalid(
+                                &self.target,
+                                format!(
+                                    "point {}: {} = {e}",
+                                    first + i as u64,
+                                    self.like.fields[f].name
+                                ),
+                            )
+                        })?;
                     }
                 }
             }

@@ -7,6 +7,7 @@ use std::path::Path;
 use glam::DVec3;
 use laz::{LasZipDecompressor, LazVlr};
 
+use super::chunks::{self, Chunks};
 use super::layout::{
     self, BASE_LEN, EVLR_HEADER, VLR_HEADER, at, get_i32, get_u16, get_u32, get_u64,
     min_header_size,
@@ -353,6 +354,7 @@ fn open_laz(
         LazVlr::from_buffer(vlr.data())
             .map_err(|e| IoError::header(path, format!("bad laszip VLR: {e}")))
     })?;
+    chunks::check_compressor(path, vlr.data(), &laz_vlr)?;
     if laz_vlr.items().is_empty() || laz_vlr.items_size() != record_len as u64 {
         return Err(IoError::header(
             path,
@@ -416,11 +418,36 @@ fn open_laz(
                 ),
             ));
         }
+        if chunks::is_layered(&laz_vlr) {
+            let bytes: Vec<u64> = table.as_ref().iter().map(|e| e.byte_count).collect();
+            let first = data_start + 8;
+            chunks::check_layers(
+                path,
+                &mut reader,
+                &laz_vlr,
+                first,
+                record_len as u64,
+                Chunks::Table(&bytes, table_at),
+            )?;
+        }
     } else if laz_vlr.uses_variable_size_chunks() {
         return Err(IoError::invalid(
             path,
             "variable-size LAZ chunks but no chunk table",
         ));
+    } else if chunks::is_layered(&laz_vlr) {
+        chunks::check_layers(
+            path,
+            &mut reader,
+            &laz_vlr,
+            data_start + 8,
+            record_len as u64,
+            Chunks::Walk {
+                end: size,
+                count,
+                chunk_size: u64::from(laz_vlr.chunk_size()),
+            },
+        )?;
     }
     reader.seek(SeekFrom::Start(data_start)).map_err(io)?;
     let dec = guarded(path, || {

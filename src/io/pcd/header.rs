@@ -22,8 +22,9 @@
 //! ```
 //!
 //! Keywords are matched case-insensitively. The first line that is neither blank nor a comment
-//! must be a known keyword (otherwise the file is "not a PCD file"); unknown keywords later on are
-//! kept verbatim and otherwise ignored, as PCL does.
+//! must be a known keyword (otherwise the file is "not a PCD file"); so must every later line that
+//! is not a comment: an unknown word (`POINTS0300`, stray text) is a header error naming the line
+//! (issue 15; PCL skips such lines, and qemd used to copy them to the output).
 
 use std::io::{BufRead, Read};
 use std::path::Path;
@@ -161,6 +162,21 @@ pub(super) enum Key {
     Data,
 }
 
+/// The header keywords, as [`Key::parse`] knows them.
+const KEYWORDS: [&str; 11] = [
+    "VERSION",
+    "FIELDS",
+    "COLUMNS",
+    "SIZE",
+    "TYPE",
+    "COUNT",
+    "WIDTH",
+    "HEIGHT",
+    "VIEWPOINT",
+    "POINTS",
+    "DATA",
+];
+
 impl Key {
     fn parse(word: &str) -> Option<Key> {
         Some(match word.to_ascii_uppercase().as_str() {
@@ -194,8 +210,7 @@ impl Key {
     }
 }
 
-/// One raw header line and the keyword it starts with (`None` for comments, blank and unknown
-/// lines).
+/// One raw header line and the keyword it starts with (`None` for comments and blank lines).
 #[derive(Debug, Clone)]
 pub(super) struct Line {
     pub(super) raw: Vec<u8>,
@@ -431,18 +446,33 @@ pub(super) fn read_header(r: &mut impl BufRead, path: &Path) -> Result<Header, I
                 format!("line {number} is longer than {MAX_LINE} bytes"),
             ));
         }
+        let Some(key) = key else {
+            // After the first keyword every non-comment line must be one (issue 15: a line such
+            // as `POINTS0300` or stray text was kept and copied to the output).
+            let word = String::from_utf8_lossy(first);
+            let glued = KEYWORDS
+                .iter()
+                .find(|k| word.len() > k.len() && word.starts_with(*k))
+                .map(|k| format!(" (a space missing after {k}?)"))
+                .unwrap_or_default();
+            return Err(IoError::header(
+                path,
+                format!(
+                    "line {number}: `{}` is not a PCD header keyword{glued}",
+                    show(first)
+                ),
+            ));
+        };
         seen_keyword = true;
         let values: Vec<String> = words
             .map(|w| String::from_utf8_lossy(w).into_owned())
             .collect();
-        if let Some(key) = key {
-            store(&mut raw, key, values, path, number)?;
-        }
+        store(&mut raw, key, values, path, number)?;
         lines.push(Line {
             raw: std::mem::take(&mut buf),
-            key,
+            key: Some(key),
         });
-        if key == Some(Key::Data) {
+        if key == Key::Data {
             break;
         }
     }

@@ -511,9 +511,13 @@ impl Source for PlySource {
                 faces = Some(f);
             }
         }
+        let start = data.len();
         s.reader
             .read_to_end(&mut data)
             .map_err(|e| IoError::io(&path, e))?;
+        if s.vertex + 1 == s.elements.len() {
+            more_vertices(&path, &s.elements[s.vertex], s.encoding, &data[start..])?;
+        }
         Ok(Extras {
             faces,
             trailer: Trailer::Ply(PlyTrailer {
@@ -525,6 +529,59 @@ impl Source for PlySource {
             }),
         })
     }
+}
+
+/// Refuses bytes after the last element, the vertex one, that hold more vertices: whole ascii
+/// lines of as many numbers as a vertex has properties, or binary bytes that are a whole number
+/// of vertex records (issue 15: a header declaring 290 vertices of a file holding 300 dropped 10
+/// without a word). Other trailing bytes (a comment, padding) are kept verbatim.
+fn more_vertices(
+    path: &Path,
+    vertex: &PlyElement,
+    encoding: PlyEncoding,
+    trailing: &[u8],
+) -> Result<(), IoError> {
+    let extra = if encoding.is_binary() {
+        match vertex.record_len() {
+            Some(rl) if rl > 0 && !trailing.is_empty() && trailing.len().is_multiple_of(rl) => {
+                trailing.len() / rl
+            }
+            _ => 0,
+        }
+    } else {
+        let width = vertex.properties.len();
+        let lines: Vec<&[u8]> = trailing
+            .split(|&b| b == b'\n')
+            .map(<[u8]>::trim_ascii)
+            .filter(|l| !l.is_empty())
+            .collect();
+        let vertex_like = |l: &&[u8]| {
+            let words: Vec<&[u8]> = l
+                .split(u8::is_ascii_whitespace)
+                .filter(|w| !w.is_empty())
+                .collect();
+            words.len() == width
+                && words
+                    .iter()
+                    .all(|w| std::str::from_utf8(w).is_ok_and(|t| t.parse::<f64>().is_ok()))
+        };
+        if !lines.is_empty() && lines.iter().all(vertex_like) {
+            lines.len()
+        } else {
+            0
+        }
+    };
+    if extra == 0 {
+        return Ok(());
+    }
+    Err(IoError::header(
+        path,
+        format!(
+            "the header declares {} vertices but the file holds {} ({extra} more after them)",
+            vertex.count,
+            vertex.count + extra as u64
+        ),
+    ))
 }
 
 /// Streaming PLY writer.
