@@ -504,8 +504,11 @@ impl Jobs {
     /// [`JobsError::NotFound`] (another tenant's job too), [`JobsError::Conflict`] while the job
     /// is not successful, build failures.
     pub async fn preview(&self, tenant: &str, id: &str) -> Result<PreviewFiles, JobsError> {
-        let info = self.job(tenant, id).await?;
+        // The result first: it answers 409 until the job is successful, and a successful row
+        // read after it has its report (read the other way round, a job finishing in between
+        // gave a row without a report and a 500: the flaky test of issue 13).
         let result = self.result(tenant, id).await?;
+        let info = self.job(tenant, id).await?;
         let row = info.row;
         let report = row.report.clone().ok_or_else(|| {
             JobsError::Internal(format!("job {id} is successful but has no report"))
