@@ -29,10 +29,12 @@
 //! [`Report`] records what happened: counts, tiles, halo growths, bytes spilled, per-phase wall and
 //! CPU time, peak RSS.
 
+mod arrays;
 mod normals;
 mod progress;
 mod spec;
 
+pub use arrays::{PointsOutput, denoise_points};
 pub use normals::NormalsAction;
 pub use progress::{BarProgress, LogProgress, NoProgress, Progress};
 pub use spec::{DEFAULT_OUTLIER_ALPHA, DenoiseSpec, SpecError, SpecOverlay, validate_alpha};
@@ -46,8 +48,8 @@ use cpu_time::ProcessTime;
 use glam::DVec3;
 use thiserror::Error;
 
-use crate::denoise::cloud::{self, CloudRun, Globals};
-use crate::denoise::{self, DenoiseError, Method, Params, PhaseTiming, Stats, Timer, origin_of};
+use crate::denoise::cloud::{self, Globals};
+use crate::denoise::{self, DenoiseError, Method, Params, PhaseTiming, Stats, Timer};
 use crate::geometry::ExactSum;
 use crate::io::{self, BATCH, Cloud, Extras, Format, IoError, SinkOptions, Source, SourceInfo};
 use crate::neighbours::{NeighboursError, with_cancel};
@@ -579,65 +581,21 @@ fn run_points_in_memory(job: &Job, opts: &RunOptions) -> Result<Report, Pipeline
     let cloud = Cloud::read(&job.input, job.input_format)?;
     timer.lap("read", &mut phases);
     cancelled(opts)?;
-    let finite: Vec<usize> = (0..cloud.len())
-        .filter(|&i| in_range(cloud.positions[i]))
-        .collect();
-    let pts: Vec<DVec3> = finite.iter().map(|&i| cloud.positions[i]).collect();
-    let ties: Vec<u64> = finite.iter().map(|&i| i as u64).collect();
-    let denoise_err = |e| denoise_error(&job.input, e);
-    if pts.is_empty() {
-        return Err(denoise_err(DenoiseError::Empty));
-    }
-    if pts.len() > 1 && pts.iter().all(|p| *p == pts[0]) {
-        return Err(denoise_err(DenoiseError::AllIdentical(pts.len())));
-    }
-    let origin = origin_of(&pts);
-    let run = CloudRun {
-        positions: &pts,
-        ties: &ties,
-        origin,
-        region: None,
-        isolation: crate::denoise::isolation::of_cloud(&pts, &ties, origin, job.spec.params.k()),
-        complete: None,
-    };
     opts.progress.phase("denoise", 1);
-    let globals = if cloud::needs_globals(&job.spec.params) {
-        with_cancel(&opts.cancel, || {
-            cloud::globals_partial(&run, &job.spec.params, |_| true)
-        })
-        .map_err(denoise_err)?
-        .0
-        .finish()
-    } else {
-        Globals::default()
-    };
-    let result = with_cancel(&opts.cancel, || {
-        cloud::run(&run, &job.spec.params, &globals)
-    })
-    .map_err(denoise_err)?;
-    let mut stats = Stats::default();
-    result.book(&pts, |_| true, &mut stats);
-    stats.points = cloud.len() as u64;
-    stats.non_finite = (cloud.len() - pts.len()) as u64;
+    let result = denoise_points(&cloud.positions, &job.spec, &opts.cancel)
+        .map_err(|e| denoise_error(&job.input, e))?;
+    let stats = result.stats.clone();
     phases.merge(&Stats {
-        phases: result.stats.phases.clone(),
+        phases: result.phases.clone(),
         ..Stats::default()
     });
     opts.progress.advance(1);
     cancelled(opts)?;
     timer = Timer::start();
 
-    let (sum, sq): (ExactSum, ExactSum) = (
-        result.knn_mean.iter().copied().collect(),
-        result.knn_mean.iter().map(|m| m * m).collect(),
-    );
-    let asm = Assembler::new(
-        &cloud.info,
-        job.spec.outliers,
-        threshold(&sum, &sq, job.spec.outlier_alpha),
-    );
+    let asm = Assembler::new(&cloud.info, job.spec.outliers, result.threshold);
     let mut by_index: Vec<Option<(DVec3, f64)>> = vec![None; cloud.len()];
-    for (j, &i) in finite.iter().enumerate() {
+    for (j, &i) in result.kept.iter().enumerate() {
         by_index[i] = Some((result.positions[j], result.knn_mean[j]));
     }
     let input = PointBatch {
