@@ -7,6 +7,7 @@ ratio. Open3D estimates normals only; qemd estimates normals, filters them and m
 so the ratio is what a denoised cloud costs over a normals pass.
 """
 
+import os
 import sys
 import time
 
@@ -14,7 +15,7 @@ import numpy as np
 
 import qemd
 
-REPEAT = 2
+REPEAT = int(os.environ.get("QEMD_BENCH_REPEAT", "2"))
 
 
 def sphere(n, seed=1):

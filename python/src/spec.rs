@@ -4,7 +4,8 @@
 //! and its enum spellings are the spec's, and an unknown name gets serde's "unknown field"
 //! message listing the known ones), the overlays are merged, and [`SpecOverlay::resolve`] checks
 //! the ranges with the messages the CLI and the API give. Python values go through a small serde
-//! deserializer rather than JSON, so a `float("nan")` reaches the spec's own range check.
+//! deserializer rather than JSON, so a `float("nan")` reaches the spec's own range check. The
+//! pytest suite (`python/tests`) tests these messages against the CLI's.
 
 use pyo3::prelude::*;
 use pyo3::types::{PyBool, PyDict, PyFloat, PyInt, PyString};
@@ -130,12 +131,15 @@ pub fn spec_of(params: &[(String, Value)]) -> Result<DenoiseSpec, String> {
         .map_err(|e| e.to_string())
 }
 
+/// Keywords split into the spec's (read as values) and the function's own options.
+pub type Keywords<'py> = (Vec<(String, Value)>, Vec<(String, Bound<'py, PyAny>)>);
+
 /// The keywords of `kwargs` but those in `own` (the function's own options, returned apart),
 /// each read as a [`Value`].
 pub fn split_kwargs<'py>(
     kwargs: Option<&Bound<'py, PyDict>>,
     own: &[&str],
-) -> Result<(Vec<(String, Value)>, Vec<(String, Bound<'py, PyAny>)>), String> {
+) -> Result<Keywords<'py>, String> {
     let mut params = Vec::new();
     let mut options = Vec::new();
     let Some(kwargs) = kwargs else {
@@ -153,57 +157,4 @@ pub fn split_kwargs<'py>(
         params.push((name, value));
     }
     Ok((params, options))
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use qem_denoise::denoise::Method;
-
-    fn kw(pairs: &[(&str, Value)]) -> Vec<(String, Value)> {
-        pairs
-            .iter()
-            .map(|(k, v)| (k.to_string(), v.clone()))
-            .collect()
-    }
-
-    #[test]
-    fn keywords_are_the_spec() {
-        let s = spec_of(&kw(&[
-            ("knn", Value::Int(8)),
-            ("method", Value::Str("bilateral".into())),
-            ("mu", Value::Int(1)),
-            ("guard", Value::Bool(false)),
-            ("max_move", Value::None),
-        ]))
-        .unwrap();
-        assert_eq!(s.params.knn, Some(8));
-        assert_eq!(s.params.method, Method::Bilateral);
-        assert_eq!(s.params.mu, 1.0);
-        assert!(!s.params.guard);
-        assert_eq!(s.params.max_move, None);
-        assert_eq!(spec_of(&[]).unwrap(), DenoiseSpec::default());
-    }
-
-    #[test]
-    fn messages_are_the_specs() {
-        let e = spec_of(&kw(&[("outlier_alpha", Value::Float(-1.0))])).unwrap_err();
-        assert_eq!(
-            e,
-            "invalid parameter outlier_alpha: must be finite and ≥ 0, got -1"
-        );
-        let e = spec_of(&kw(&[("lambda", Value::Float(f64::NAN))])).unwrap_err();
-        assert!(e.starts_with("invalid parameter lambda:"), "{e}");
-        let e = spec_of(&kw(&[("knnn", Value::Int(3))])).unwrap_err();
-        assert!(
-            e.starts_with("unknown field `knnn`, expected one of"),
-            "{e}"
-        );
-        let e = spec_of(&kw(&[("knn", Value::Float(8.0))])).unwrap_err();
-        assert!(e.starts_with("invalid parameter knn: invalid type"), "{e}");
-        let e = spec_of(&kw(&[("knn", Value::Int(-1))])).unwrap_err();
-        assert!(e.starts_with("invalid parameter knn: invalid value"), "{e}");
-        let e = spec_of(&kw(&[("method", Value::Str("qqq".into()))])).unwrap_err();
-        assert!(e.contains("unknown variant `qqq`"), "{e}");
-    }
 }
