@@ -5,6 +5,7 @@ sets it); without it they are skipped with that reason.
 """
 
 import os
+import signal
 import subprocess
 import sys
 import threading
@@ -293,6 +294,27 @@ def test_gil_is_released_while_computing():
     elapsed = time.perf_counter() - start
     # This thread kept running pure-Python code while the other computed.
     assert elapsed > 0.05 and ticks > 10_000, (elapsed, ticks)
+
+
+def test_ctrl_c_stops_a_run_with_keyboard_interrupt(tmp_path):
+    code = (
+        "import sys, numpy as np, qemd\n"
+        "rng = np.random.default_rng(0)\n"
+        "p = rng.random((1_000_000, 3))\n"
+        "print('start', flush=True)\n"
+        "try:\n"
+        "    qemd.denoise(p)\n"
+        "except KeyboardInterrupt:\n"
+        "    print('interrupted', flush=True)\n"
+        "    sys.exit(3)\n"
+        "print('finished', flush=True)\n"
+    )
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    assert proc.stdout.readline().strip() == "start"
+    time.sleep(0.5)
+    proc.send_signal(signal.SIGINT)
+    out, _ = proc.communicate(timeout=300)
+    assert proc.returncode == 3 and out.strip() == "interrupted", (proc.returncode, out)
 
 
 # ---------------------------------------------------------------------------------------------
