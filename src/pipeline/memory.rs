@@ -20,7 +20,7 @@ use crate::points::{PointBatch, in_range};
 
 /// [`DenoiseError::Empty`] without a point to process, [`DenoiseError::AllIdentical`] when every
 /// one is at the same position (as the tiled path's plan refuses them).
-fn check_points(positions: &[DVec3]) -> Result<(), DenoiseError> {
+pub(super) fn check_points(positions: &[DVec3]) -> Result<(), DenoiseError> {
     let mut finite = positions.iter().filter(|p| in_range(**p));
     let Some(first) = finite.next() else {
         return Err(DenoiseError::Empty);

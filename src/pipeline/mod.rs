@@ -32,6 +32,7 @@
 //! [`Report`] records what happened: counts, tiles, halo growths, bytes spilled, per-phase wall and
 //! CPU time, peak RSS.
 
+mod arrays;
 mod assemble;
 mod error;
 mod job;
@@ -45,6 +46,7 @@ mod spec;
 mod stream;
 pub mod tiled;
 
+pub use arrays::{PointsOutput, denoise_points};
 pub use error::PipelineError;
 pub use job::{Job, OutlierMode};
 pub use normals::NormalsAction;
