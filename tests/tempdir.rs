@@ -156,9 +156,18 @@ fn issue10_a_killed_runs_temp_space_is_removed_by_the_next_run() {
         .stderr(Stdio::null())
         .spawn()
         .unwrap();
-    // Wait until the run has its directory, then kill it outright (no cleanup possible).
+    // Wait until the run has its directory and has recorded its owner in it (the directory is
+    // made first, the `pid` file right after), then kill it outright (no cleanup possible).
+    let owned = || {
+        entries(&tmp)
+            .iter()
+            .filter(|n| !foreign.contains(&n.as_str()))
+            .any(|n| {
+                std::fs::read_to_string(tmp.join(n).join("pid")).is_ok_and(|s| s.ends_with('\n'))
+            })
+    };
     let start = Instant::now();
-    while entries(&tmp).len() <= foreign.len() {
+    while !owned() {
         assert!(
             start.elapsed() < Duration::from_secs(60),
             "the run never started"
