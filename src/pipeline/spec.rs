@@ -489,6 +489,30 @@ mod tests {
     }
 
     #[test]
+    fn merge_takes_every_field() {
+        // An overlay with every field set (the defaults' values, nulls made numbers) merged
+        // over an empty one comes back whole: a field left out of `merge` would be dropped.
+        let Ok(serde_json::Value::Object(mut m)) = serde_json::to_value(Params::default()) else {
+            panic!("Params is not an object");
+        };
+        for v in m.values_mut() {
+            if v.is_null() {
+                *v = serde_json::json!(3);
+            }
+        }
+        m.insert("paper".into(), serde_json::json!(true));
+        m.insert("outliers".into(), serde_json::json!("remove"));
+        m.insert("outlier_alpha".into(), serde_json::json!(1.5));
+        let full: SpecOverlay = serde_json::from_value(serde_json::Value::Object(m)).unwrap();
+        let Ok(serde_json::Value::Object(set)) = serde_json::to_value(&full) else {
+            panic!("SpecOverlay is not an object");
+        };
+        assert_eq!(set.len(), SpecOverlay::fields().len());
+        assert_eq!(SpecOverlay::default().merge(full.clone()), Ok(full.clone()));
+        assert_eq!(full.clone().merge(SpecOverlay::default()), Ok(full));
+    }
+
+    #[test]
     fn stored_specs_keep_loading() {
         // The shape jobs were stored in before the spec existed: params, outliers, alpha.
         let s: DenoiseSpec = serde_json::from_str(
