@@ -1176,3 +1176,80 @@ fn start_tiled_job(
     let work = s.data.join("jobs").join(&id).join("work");
     (s, id, work)
 }
+
+/// The value of the metric line that starts with `name` (0 when absent).
+fn metric(c: &Client, s: &Server, name: &str) -> f64 {
+    let text = c.get(s.url("/metrics")).send().unwrap().text().unwrap();
+    text.lines()
+        .find_map(|l| l.strip_prefix(name).and_then(|v| v.trim().parse().ok()))
+        .unwrap_or(0.0)
+}
+
+/// Issue 10: the synchronous path denoises the request body in memory and answers from memory.
+/// With no temporary directory to write to (`TMPDIR` names nothing, `<data>/tmp` is replaced by
+/// a regular file), requests in five formats still answer what `qemd denoise` writes, and
+/// `qemd_sync_spooled_total` stays 0. E57 output, whose writer needs a file of its own, is the
+/// one case that spools: it is counted, and fails here for want of a temporary directory.
+#[test]
+fn issue10_the_sync_path_writes_no_temporary_file() {
+    let root = tempfile::tempdir().unwrap();
+    let missing = root.path().join("no-such-tmp");
+    let mut s = Server::start(root.path(), "", &[("TMPDIR", missing.to_str().unwrap())]);
+    let tmp = s.data.join("tmp");
+    std::fs::remove_dir_all(&tmp).unwrap();
+    std::fs::write(&tmp, b"not a directory").unwrap();
+    let c = client();
+    let src = root.path().join("in.ply");
+    write_cloud(&src, 2000, 10);
+    for fmt in ["ply", "las", "laz", "pcd", "xyz"] {
+        // The input in each format (written by a denoise run, which converts as it goes).
+        let input = root.path().join(format!("in.{fmt}"));
+        if fmt != "ply" {
+            let _ = cli(&src, &input, &[]);
+        }
+        let want = cli(&input, &root.path().join(format!("want.{fmt}")), &[]);
+        let r = c
+            .post(s.url(&format!("/v1/denoise?format={fmt}")))
+            .header("content-type", OCTET)
+            .body(std::fs::read(&input).unwrap())
+            .send()
+            .unwrap();
+        assert_eq!(r.status(), StatusCode::OK, "{fmt}: {}", s.log());
+        assert!(
+            r.bytes().unwrap() == want,
+            "{fmt}: the sync result equals the CLI's"
+        );
+    }
+    assert_eq!(metric(&c, &s, "qemd_sync_spooled_total"), 0.0);
+    assert_eq!(
+        metric(&c, &s, "qemd_sync_requests_total{outcome=\"ok\"}"),
+        5.0
+    );
+    let r = c
+        .post(s.url("/v1/denoise?format=ply&output_format=e57"))
+        .header("content-type", OCTET)
+        .body(std::fs::read(&src).unwrap())
+        .send()
+        .unwrap();
+    assert!(
+        !r.status().is_success(),
+        "E57 output needs a temporary file"
+    );
+    std::fs::remove_file(&tmp).unwrap();
+    std::fs::create_dir(&tmp).unwrap();
+    let r = c
+        .post(s.url("/v1/denoise?format=ply&output_format=e57"))
+        .header("content-type", OCTET)
+        .body(std::fs::read(&src).unwrap())
+        .send()
+        .unwrap();
+    assert_eq!(r.status(), StatusCode::OK);
+    assert!(r.bytes().unwrap().starts_with(b"ASTM-E57"));
+    assert_eq!(metric(&c, &s, "qemd_sync_spooled_total"), 1.0);
+    assert_eq!(
+        std::fs::read_dir(&tmp).unwrap().count(),
+        0,
+        "the spool is removed"
+    );
+    s.kill();
+}

@@ -322,7 +322,17 @@ impl E57Source {
     /// An unreadable file, a file without the E57 signature, a malformed header or XML section,
     /// a scan without Cartesian or spherical coordinates.
     pub fn open(path: &Path) -> Result<E57Source, IoError> {
-        let mut file = super::open_file(path)?;
+        E57Source::new(super::Input::from_path(path)?)
+    }
+
+    /// [`E57Source::open`] on any [`super::Input`].
+    ///
+    /// # Errors
+    /// As [`E57Source::open`].
+    pub fn new(mut file: super::Input) -> Result<E57Source, IoError> {
+        let owned = file.name().to_path_buf();
+        let path = owned.as_path();
+        let again = file.reopener();
         let mut sig = [0u8; 8];
         let n = file.read(&mut sig).map_err(|e| IoError::io(path, e))?;
         if n < sig.len() || &sig != SIGNATURE {
@@ -360,7 +370,7 @@ impl E57Source {
             std::thread::Builder::new()
                 .name("e57-reader".into())
                 .spawn(move || {
-                    if let Err(e) = decode(&owned, &schema, &scans, &tx) {
+                    if let Err(e) = decode(&owned, &again, &schema, &scans, &tx) {
                         let _ = tx.send(Err(e));
                     }
                 })
@@ -388,11 +398,12 @@ impl E57Source {
 /// The reader thread: decodes every scan and sends its points in runs of [`BATCH`].
 fn decode(
     path: &Path,
+    again: &super::reader::Reopener,
     schema: &Schema,
     scans: &[PointCloud],
     tx: &SyncSender<Chunk>,
 ) -> Result<(), IoError> {
-    let file = super::open_file(path)?;
+    let file = again.open()?;
     let mut reader = E57Reader::new(BufReader::new(file)).map_err(|e| e57_error(path, e))?;
     let scan_field = (scans.len() > 1)
         .then(|| schema.field_index(SCAN_FIELD))

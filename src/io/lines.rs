@@ -3,13 +3,12 @@
 //! precision, `F64` schemas and records for text columns, and a line reader and an atomic line
 //! writer that reproduce a file's terminators.
 
-use std::fs::File;
 use std::io::{BufRead, BufReader, Read, Write};
 use std::path::{Path, PathBuf};
 
 use glam::DVec3;
 
-use super::{AtomicFile, IoError};
+use super::{AtomicFile, Input, IoError};
 use crate::points::{Endian, Field, ScalarType, Schema};
 
 /// Line terminator of a text file.
@@ -164,20 +163,19 @@ pub(crate) fn encode_f64_record(values: &[f64], record: &mut Vec<u8>) -> DVec3 {
 /// Reads a file line by line, counting lines from 1.
 pub(crate) struct LineReader {
     path: PathBuf,
-    inner: BufReader<File>,
+    inner: BufReader<Input>,
     buf: Vec<u8>,
     line: u64,
 }
 
 impl LineReader {
-    pub(crate) fn open(path: &Path) -> Result<LineReader, IoError> {
-        let file = super::open_file(path)?;
-        Ok(LineReader {
-            path: path.to_path_buf(),
-            inner: BufReader::with_capacity(1 << 16, file),
+    pub(crate) fn new(input: Input) -> LineReader {
+        LineReader {
+            path: input.name().to_path_buf(),
+            inner: BufReader::with_capacity(1 << 16, input),
             buf: Vec::new(),
             line: 0,
-        })
+        }
     }
 
     /// Reads the next raw line (terminator included); false at the end of the file.
@@ -222,12 +220,12 @@ pub(crate) struct LineSink {
 }
 
 impl LineSink {
-    pub(crate) fn create(path: &Path, eol: LineEnding) -> Result<LineSink, IoError> {
-        Ok(LineSink {
-            file: AtomicFile::create(path)?,
+    pub(crate) fn new(file: AtomicFile, eol: LineEnding) -> LineSink {
+        LineSink {
+            file,
             eol,
             pending: false,
-        })
+        }
     }
 
     pub(crate) fn path(&self) -> &Path {

@@ -66,13 +66,15 @@ pub mod output;
 pub mod pcd;
 pub mod ply;
 pub mod raw;
+pub mod reader;
 pub mod sniff;
 pub(crate) mod tally;
 pub mod text;
 
 pub use input::{InputFile, is_stream_input};
 pub use lines::LineEnding;
-pub use output::{AtomicFile, OutputTarget, STDIO, is_stdio, is_stream_output};
+pub use output::{AtomicFile, MemoryOutput, OutputTarget, STDIO, is_stdio, is_stream_output};
+pub use reader::Input;
 
 use std::fs::File;
 use std::path::{Path, PathBuf};
@@ -516,18 +518,26 @@ pub fn open(path: &Path, format: Option<Format>) -> Result<Box<dyn Source>, IoEr
         Some(f) => f,
         None => Format::from_path(path)?,
     };
+    open_input(Input::from_path(path)?, format)
+}
+
+/// Opens `input` (a file or bytes in memory) as `format` for streaming.
+///
+/// # Errors
+/// Malformed header; a format that needs a known size (LAS, raw scans) on an input without one.
+pub fn open_input(input: Input, format: Format) -> Result<Box<dyn Source>, IoError> {
     Ok(match format {
-        Format::Ply => Box::new(ply::PlySource::open(path)?),
-        Format::Obj => Box::new(obj::ObjSource::open(path)?),
-        Format::Off => Box::new(off::OffSource::open(path)?),
-        Format::Xyz => Box::new(text::TextSource::open(path, text::TextFlavor::Xyz)?),
-        Format::Pts => Box::new(text::TextSource::open(path, text::TextFlavor::Pts)?),
+        Format::Ply => Box::new(ply::PlySource::new(input)?),
+        Format::Obj => Box::new(obj::ObjSource::new(input)?),
+        Format::Off => Box::new(off::OffSource::new(input)?),
+        Format::Xyz => Box::new(text::TextSource::new(input, text::TextFlavor::Xyz)?),
+        Format::Pts => Box::new(text::TextSource::new(input, text::TextFlavor::Pts)?),
         Format::Kitti | Format::Nuscenes | Format::Bin(_) => {
-            Box::new(raw::RawSource::open_as(path, format)?)
+            Box::new(raw::RawSource::new(input, format)?)
         }
-        Format::Pcd => Box::new(pcd::PcdSource::open(path)?),
-        Format::Las | Format::Laz | Format::Copc => Box::new(las::LasSource::open(path)?),
-        Format::E57 => Box::new(e57::E57Source::open(path)?),
+        Format::Pcd => Box::new(pcd::PcdSource::new(input)?),
+        Format::Las | Format::Laz | Format::Copc => Box::new(las::LasSource::new(input)?),
+        Format::E57 => Box::new(e57::E57Source::new(input)?),
     })
 }
 
@@ -619,6 +629,80 @@ pub fn create_with(
             }
         })?,
     };
+    let out = match format {
+        // Formats that patch their header after the data seek; towards a stream they spool.
+        Format::Las | Format::Laz => {
+            AtomicFile::create_seekable(path, options.temp_dir.as_deref())?
+        }
+        // E57 and COPC read back and reorganise what they wrote: they need a path of their own.
+        Format::E57 | Format::Copc => return create_file_only(path, format, like, count, options),
+        _ => AtomicFile::create(path)?,
+    };
+    create_in(out, format, like, count, options)
+}
+
+/// [`create_with`] writing to `out`: a file, a stream, or memory ([`AtomicFile::memory`]).
+///
+/// # Errors
+/// As [`create_with`]; [`IoError::Unsupported`] for E57 and COPC, which need a regular file.
+pub fn create_in(
+    out: AtomicFile,
+    format: Format,
+    like: &SourceInfo,
+    count: u64,
+    options: &SinkOptions,
+) -> Result<Box<dyn Sink>, IoError> {
+    refuse_noise_flag(out.target(), format, options)?;
+    Ok(match format {
+        Format::Ply => Box::new(ply::PlySink::new(out, like, count, options)?),
+        Format::Obj => Box::new(obj::ObjSink::new(out, like, count)?),
+        Format::Off => Box::new(off::OffSink::new(out, like, count)?),
+        Format::Xyz => Box::new(text::TextSink::new(
+            out,
+            text::TextFlavor::Xyz,
+            like,
+            count,
+            options,
+        )?),
+        Format::Pts => Box::new(text::TextSink::new(
+            out,
+            text::TextFlavor::Pts,
+            like,
+            count,
+            options,
+        )?),
+        Format::Kitti | Format::Nuscenes | Format::Bin(_) => {
+            Box::new(raw::RawSink::new(out, format, like, count)?)
+        }
+        Format::Pcd => Box::new(pcd::PcdSink::new(out, like, count, options)?),
+        Format::Las => Box::new(las::LasSink::new(out, like, count, options, false)?),
+        Format::Laz => Box::new(las::LasSink::new(out, like, count, options, true)?),
+        Format::E57 | Format::Copc => {
+            return Err(IoError::Unsupported {
+                path: out.target().to_path_buf(),
+                detail: format!("{format} output needs a regular file"),
+            });
+        }
+    })
+}
+
+/// The sinks that write a path of their own (E57, COPC).
+fn create_file_only(
+    path: &Path,
+    format: Format,
+    like: &SourceInfo,
+    count: u64,
+    options: &SinkOptions,
+) -> Result<Box<dyn Sink>, IoError> {
+    refuse_noise_flag(path, format, options)?;
+    Ok(match format {
+        Format::Copc => Box::new(las::CopcSink::create(path, like, count, options)?),
+        _ => Box::new(e57::E57Sink::create(path, like, count, options)?),
+    })
+}
+
+/// [`IoError::Unsupported`] when the noise flag is asked of a format that cannot carry it.
+fn refuse_noise_flag(path: &Path, format: Format, options: &SinkOptions) -> Result<(), IoError> {
     if options.noise_flag {
         let refuse = match format {
             Format::Las
@@ -646,33 +730,7 @@ pub fn create_with(
             });
         }
     }
-    Ok(match format {
-        Format::Ply => Box::new(ply::PlySink::create_with(path, like, count, options)?),
-        Format::Obj => Box::new(obj::ObjSink::create(path, like, count)?),
-        Format::Off => Box::new(off::OffSink::create(path, like, count)?),
-        Format::Xyz => Box::new(text::TextSink::create_with(
-            path,
-            text::TextFlavor::Xyz,
-            like,
-            count,
-            options,
-        )?),
-        Format::Pts => Box::new(text::TextSink::create_with(
-            path,
-            text::TextFlavor::Pts,
-            like,
-            count,
-            options,
-        )?),
-        Format::Kitti | Format::Nuscenes | Format::Bin(_) => {
-            Box::new(raw::RawSink::create_as(path, format, like, count)?)
-        }
-        Format::Pcd => Box::new(pcd::PcdSink::create(path, like, count, options)?),
-        Format::Copc => Box::new(las::CopcSink::create(path, like, count, options)?),
-        Format::Las => Box::new(las::LasSink::create_as(path, like, count, options, false)?),
-        Format::Laz => Box::new(las::LasSink::create_as(path, like, count, options, true)?),
-        Format::E57 => Box::new(e57::E57Sink::create(path, like, count, options)?),
-    })
+    Ok(())
 }
 
 /// Name of the per-point field that carries the noise flag in PLY, PCD and text output.
@@ -712,12 +770,26 @@ impl Cloud {
     /// # Errors
     /// Anything [`open`], [`Source::read_batch`] or [`Source::finish`] reports.
     pub fn read(path: &Path, format: Option<Format>) -> Result<Cloud, IoError> {
-        let mut src = open(path, format)?;
+        let src = open(path, format)?;
+        let file_len = std::fs::metadata(path).map_or(1 << 20, |m| m.len());
+        Cloud::read_all(src, file_len)
+    }
+
+    /// Reads a whole [`Input`] (a file or bytes in memory) of `format`.
+    ///
+    /// # Errors
+    /// As [`Cloud::read`].
+    pub fn read_input(input: Input, format: Format) -> Result<Cloud, IoError> {
+        let len = input.len().unwrap_or(1 << 20);
+        Cloud::read_all(open_input(input, format)?, len)
+    }
+
+    /// Reads every point of `src`, whose input holds `file_len` bytes.
+    fn read_all(mut src: Box<dyn Source>, file_len: u64) -> Result<Cloud, IoError> {
         let info = src.info().clone();
         // The declared length is untrusted (a LAZ header can claim billions of points in a few
         // bytes): the reservation is also held to one point per byte of the file; a cloud that
         // is really larger grows as it is read.
-        let file_len = std::fs::metadata(path).map_or(1 << 20, |m| m.len());
         let cap = info.len.unwrap_or(0).min(1 << 28).min(file_len) as usize;
         let rl = info.schema.record_len;
         let mut positions = Vec::with_capacity(cap);
@@ -732,7 +804,7 @@ impl Cloud {
             && f.min_vertex_count() > positions.len()
         {
             return Err(IoError::invalid(
-                path,
+                &info.path,
                 format!(
                     "a face references vertex {} but the file has {} vertices",
                     f.min_vertex_count() - 1,
@@ -794,7 +866,19 @@ impl Cloud {
     /// # Errors
     /// Anything [`create`] or the sink reports.
     pub fn write(&self, path: &Path, format: Option<Format>) -> Result<(), IoError> {
-        let mut sink = create(path, format, &self.info, self.positions.len() as u64)?;
+        self.write_to(create(
+            path,
+            format,
+            &self.info,
+            self.positions.len() as u64,
+        )?)
+    }
+
+    /// Writes the cloud into `sink`, created for [`Cloud::len`] points like `self.info`.
+    ///
+    /// # Errors
+    /// Anything the sink reports.
+    pub fn write_to(&self, mut sink: Box<dyn Sink>) -> Result<(), IoError> {
         let rl = self.info.schema.record_len;
         let mut batch = PointBatch::with_capacity(rl, BATCH);
         for (c, (pos, rec)) in self

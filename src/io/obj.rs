@@ -32,6 +32,7 @@
 //! [`SinkOptions::noise_flag`](super::SinkOptions::noise_flag) ("outlier flags apply to point
 //! clouds").
 
+use std::io::Read;
 use std::path::Path;
 
 use glam::DVec3;
@@ -41,7 +42,7 @@ use super::lines::{
     push_value, show, split_eol, strip_comment, tokens,
 };
 use super::tally::{Tally, check_batch};
-use super::{Extras, Format, IoError, Meta, Sink, Source, SourceInfo, Trailer};
+use super::{AtomicFile, Extras, Format, Input, IoError, Meta, Sink, Source, SourceInfo, Trailer};
 use crate::points::{Faces, PointBatch, ScalarType, Schema};
 
 /// OBJ header information a sink reproduces.
@@ -125,7 +126,20 @@ impl ObjSource {
     /// # Errors
     /// Unreadable file, no vertex, a malformed number, a face index that is 0 or out of range.
     pub fn open(path: &Path) -> Result<ObjSource, IoError> {
-        let data = std::fs::read(path).map_err(|e| IoError::io(path, e))?;
+        ObjSource::new(Input::from_path(path)?)
+    }
+
+    /// [`ObjSource::open`] on any [`Input`].
+    ///
+    /// # Errors
+    /// As [`ObjSource::open`].
+    pub fn new(mut input: Input) -> Result<ObjSource, IoError> {
+        let owned = input.name().to_path_buf();
+        let path = owned.as_path();
+        let mut data = Vec::new();
+        input
+            .read_to_end(&mut data)
+            .map_err(|e| IoError::io(path, e))?;
         let mut header = Vec::new();
         let mut runs: Vec<ObjRun> = Vec::new();
         let mut eol = None;
@@ -326,12 +340,20 @@ impl ObjSink {
     /// # Errors
     /// The directory is not writable.
     pub fn create(path: &Path, like: &SourceInfo, count: u64) -> Result<ObjSink, IoError> {
+        ObjSink::new(AtomicFile::create(path)?, like, count)
+    }
+
+    /// [`ObjSink::create`] writing to `file` (a file, a stream or memory).
+    ///
+    /// # Errors
+    /// Write failures.
+    pub fn new(file: AtomicFile, like: &SourceInfo, count: u64) -> Result<ObjSink, IoError> {
         let schema = like.schema.clone();
         let (meta, fields) = match &like.meta {
             Meta::Obj(m) => (Some(m), extra_fields(&schema)),
             _ => (None, Vec::new()),
         };
-        let mut out = LineSink::create(path, meta.map_or(LineEnding::Lf, |m| m.eol))?;
+        let mut out = LineSink::new(file, meta.map_or(LineEnding::Lf, |m| m.eol));
         if let Some(m) = meta {
             out.raw(&m.header)?;
         }

@@ -36,7 +36,7 @@ use super::lines::{
     strip_comment, tokens,
 };
 use super::tally::{Tally, check_batch};
-use super::{Extras, Format, IoError, Meta, Sink, Source, SourceInfo, Trailer};
+use super::{AtomicFile, Extras, Format, Input, IoError, Meta, Sink, Source, SourceInfo, Trailer};
 use crate::points::{Faces, PointBatch, ScalarType, Schema};
 
 /// OFF header information a sink reproduces.
@@ -201,7 +201,17 @@ impl OffSource {
     /// # Errors
     /// Unreadable or empty file, a missing or unsupported keyword, bad counts, a bad first vertex.
     pub fn open(path: &Path) -> Result<OffSource, IoError> {
-        let mut lines = LineReader::open(path)?;
+        OffSource::new(Input::from_path(path)?)
+    }
+
+    /// [`OffSource::open`] on any [`Input`].
+    ///
+    /// # Errors
+    /// As [`OffSource::open`].
+    pub fn new(input: Input) -> Result<OffSource, IoError> {
+        let owned = input.name().to_path_buf();
+        let path = owned.as_path();
+        let mut lines = LineReader::new(input);
         let mut meta = OffMeta::default();
         // The keyword line.
         let mut counts = None;
@@ -480,13 +490,21 @@ impl OffSink {
     /// # Errors
     /// The directory is not writable.
     pub fn create(path: &Path, like: &SourceInfo, count: u64) -> Result<OffSink, IoError> {
+        OffSink::new(AtomicFile::create(path)?, like, count)
+    }
+
+    /// [`OffSink::create`] writing to `file` (a file, a stream or memory).
+    ///
+    /// # Errors
+    /// Write failures.
+    pub fn new(file: AtomicFile, like: &SourceInfo, count: u64) -> Result<OffSink, IoError> {
         let schema = like.schema.clone();
         let nf = like.faces.unwrap_or(0);
         let fields;
         let out = match &like.meta {
             Meta::Off(m) => {
                 fields = extra_fields(&schema);
-                let mut out = LineSink::create(path, m.eol)?;
+                let mut out = LineSink::new(file, m.eol);
                 let mut counts = format!("{count} {nf}");
                 if let Some(e) = &m.edges {
                     counts.push(' ');
@@ -507,7 +525,7 @@ impl OffSink {
             }
             _ => {
                 fields = Vec::new();
-                let mut out = LineSink::create(path, LineEnding::Lf)?;
+                let mut out = LineSink::new(file, LineEnding::Lf);
                 out.line(b"OFF")?;
                 out.line(format!("{count} {nf} 0").as_bytes())?;
                 out

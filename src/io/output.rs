@@ -19,13 +19,17 @@
 //! temporary directory, as large as the output) and copies it to the stream at commit; towards a
 //! regular file it behaves like [`AtomicFile::create`].
 //!
+//! [`AtomicFile::memory`] writes into memory instead: the bytes are handed to its
+//! [`MemoryOutput`] at commit (the service's synchronous path answers with them, with no file).
+//!
 //! Dropping an uncommitted `AtomicFile` removes its temporary file; bytes already written to a
 //! stream cannot be taken back (a reader of a pipe sees a short stream and the run's non-zero
 //! exit status).
 
 use std::fs::File;
-use std::io::{BufWriter, Seek, SeekFrom, Write};
+use std::io::{BufWriter, Cursor, Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex};
 
 use super::IoError;
 
@@ -126,6 +130,25 @@ enum Dest {
         tmp: BufWriter<tempfile::NamedTempFile>,
         stream: Stream,
     },
+    /// In memory, handed to `slot` at commit.
+    Memory {
+        buf: Cursor<Vec<u8>>,
+        slot: MemoryOutput,
+    },
+}
+
+/// Where the bytes of an [`AtomicFile::memory`] output arrive when it is committed.
+#[derive(Debug, Clone, Default)]
+pub struct MemoryOutput(Arc<Mutex<Option<Vec<u8>>>>);
+
+impl MemoryOutput {
+    /// The committed bytes (once); `None` before the commit or after a failed run.
+    pub fn take(&self) -> Option<Vec<u8>> {
+        self.0
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .take()
+    }
 }
 
 /// A buffered output that appears at its target path only when committed, or is written straight
@@ -181,6 +204,25 @@ impl AtomicFile {
         })
     }
 
+    /// An output in memory, named `name` in messages; the bytes reach the returned
+    /// [`MemoryOutput`] at commit, and nothing if it is dropped uncommitted.
+    pub fn memory(name: impl Into<PathBuf>) -> (AtomicFile, MemoryOutput) {
+        let slot = MemoryOutput::default();
+        let file = AtomicFile {
+            target: name.into(),
+            dest: Dest::Memory {
+                buf: Cursor::new(Vec::new()),
+                slot: slot.clone(),
+            },
+        };
+        (file, slot)
+    }
+
+    /// True for an output in memory ([`AtomicFile::memory`]).
+    pub fn in_memory(&self) -> bool {
+        matches!(self.dest, Dest::Memory { .. })
+    }
+
     /// The path as given.
     pub fn target(&self) -> &Path {
         &self.target
@@ -203,12 +245,16 @@ impl AtomicFile {
                 std::io::ErrorKind::Unsupported,
                 "the output is a stream and cannot be read back",
             )),
+            Dest::Memory { .. } => Err(std::io::Error::new(
+                std::io::ErrorKind::Unsupported,
+                "the output is in memory and has no file",
+            )),
         }
     }
 
     /// True when the output goes to a stream (standard output, a device, a FIFO).
     pub fn is_stream(&self) -> bool {
-        !matches!(self.dest, Dest::Rename { .. })
+        matches!(self.dest, Dest::Direct(_) | Dest::Spool { .. })
     }
 
     /// Flushes, syncs to disk and renames onto the target, replacing any regular file there; a
@@ -249,6 +295,12 @@ impl AtomicFile {
                 file.seek(SeekFrom::Start(0)).map_err(io)?;
                 let _ = std::io::copy(&mut file, &mut stream).map_err(io)?;
                 stream.flush().map_err(io)?;
+            }
+            Dest::Memory { buf, slot } => {
+                *slot
+                    .0
+                    .lock()
+                    .unwrap_or_else(std::sync::PoisonError::into_inner) = Some(buf.into_inner());
             }
         }
         Ok(())
@@ -298,6 +350,7 @@ impl Seek for AtomicFile {
     fn seek(&mut self, pos: SeekFrom) -> std::io::Result<u64> {
         match &mut self.dest {
             Dest::Rename { tmp, .. } | Dest::Spool { tmp, .. } => tmp.seek(pos),
+            Dest::Memory { buf, .. } => buf.seek(pos),
             Dest::Direct(_) => Err(std::io::Error::new(
                 std::io::ErrorKind::Unsupported,
                 "the output is a stream and cannot seek",
@@ -311,18 +364,21 @@ impl Write for AtomicFile {
         match &mut self.dest {
             Dest::Rename { tmp, .. } | Dest::Spool { tmp, .. } => tmp.write(buf),
             Dest::Direct(out) => out.write(buf),
+            Dest::Memory { buf: b, .. } => b.write(buf),
         }
     }
     fn write_all(&mut self, buf: &[u8]) -> std::io::Result<()> {
         match &mut self.dest {
             Dest::Rename { tmp, .. } | Dest::Spool { tmp, .. } => tmp.write_all(buf),
             Dest::Direct(out) => out.write_all(buf),
+            Dest::Memory { buf: b, .. } => b.write_all(buf),
         }
     }
     fn flush(&mut self) -> std::io::Result<()> {
         match &mut self.dest {
             Dest::Rename { tmp, .. } | Dest::Spool { tmp, .. } => tmp.flush(),
             Dest::Direct(out) => out.flush(),
+            Dest::Memory { .. } => Ok(()),
         }
     }
 }
@@ -368,6 +424,22 @@ mod tests {
             let mode = std::fs::metadata(&target).unwrap().permissions().mode();
             assert_eq!(mode & 0o777, 0o644, "readable by others like any new file");
         }
+    }
+
+    #[test]
+    fn issue10_memory_output_arrives_at_commit_only() {
+        let (mut f, slot) = AtomicFile::memory("<response>");
+        f.write_all(b"header later").unwrap();
+        f.seek(SeekFrom::Start(0)).unwrap();
+        f.write_all(b"HEADER").unwrap();
+        assert!(f.in_memory() && !f.is_stream());
+        assert_eq!(slot.take(), None, "nothing before the commit");
+        f.commit().unwrap();
+        assert_eq!(slot.take().unwrap(), b"HEADER later");
+        let (mut g, slot) = AtomicFile::memory("<response>");
+        g.write_all(b"partial").unwrap();
+        drop(g);
+        assert_eq!(slot.take(), None, "a dropped output hands over nothing");
     }
 
     #[test]

@@ -29,12 +29,11 @@
 //! noise flag: a raw record has no room for one, so [`create_with`](super::create_with) refuses
 //! [`SinkOptions::noise_flag`](super::SinkOptions::noise_flag) for raw output.
 
-use std::fs::File;
 use std::io::{BufReader, Read, Write};
 use std::path::Path;
 
 use super::tally::{Tally, check_batch};
-use super::{AtomicFile, Extras, Format, IoError, Meta, Sink, Source, SourceInfo};
+use super::{AtomicFile, Extras, Format, Input, IoError, Meta, Sink, Source, SourceInfo};
 use crate::points::{Endian, PointBatch, ScalarType, Schema};
 
 /// Bytes per KITTI record.
@@ -220,7 +219,7 @@ pub fn kitti_schema() -> Schema {
 }
 
 /// Refuses to read a nuScenes sweep as KITTI (see the [module overview](self)).
-fn refuse_nuscenes_as_kitti(path: &Path, file: &mut File, size: u64) -> Result<(), IoError> {
+fn refuse_nuscenes_as_kitti(path: &Path, file: &mut Input, size: u64) -> Result<(), IoError> {
     const NU: u64 = 20;
     let hint = "looks like a nuScenes sweep (5 float32 per point: x, y, z, intensity, ring); \
                 name it *.pcd.bin or give --input-format nuscenes (--bin-fields x,y,z,i reads \
@@ -251,7 +250,7 @@ fn refuse_nuscenes_as_kitti(path: &Path, file: &mut File, size: u64) -> Result<(
 /// Streaming reader of raw `f32` records.
 pub struct RawSource {
     info: SourceInfo,
-    reader: BufReader<File>,
+    reader: BufReader<Input>,
     record_len: usize,
     /// Points delivered so far.
     read: u64,
@@ -278,12 +277,23 @@ impl RawSource {
     /// Unreadable file, an empty file, a size that is not a multiple of the record, a nuScenes
     /// sweep read as KITTI.
     pub fn open_as(path: &Path, format: Format) -> Result<RawSource, IoError> {
+        RawSource::new(Input::from_path(path)?, format)
+    }
+
+    /// [`RawSource::open_as`] on any [`Input`] whose length is known.
+    ///
+    /// # Errors
+    /// As [`RawSource::open_as`]; an input of unknown length.
+    pub fn new(mut file: Input, format: Format) -> Result<RawSource, IoError> {
+        let owned = file.name().to_path_buf();
+        let path = owned.as_path();
         let layout = format
             .bin_layout()
-            .expect("open_as is called with a raw format");
+            .expect("a raw source is made for a raw format");
         let rl = layout.record_len();
-        let mut file = super::open_file(path)?;
-        let size = file.metadata().map_err(|e| IoError::io(path, e))?.len();
+        let size = file.len().ok_or_else(|| {
+            IoError::invalid(path, "a raw scan needs a file of known size, not a stream")
+        })?;
         if size == 0 {
             return Err(IoError::invalid(
                 path,
@@ -388,6 +398,19 @@ impl RawSink {
         like: &SourceInfo,
         count: u64,
     ) -> Result<RawSink, IoError> {
+        RawSink::new(AtomicFile::create(path)?, format, like, count)
+    }
+
+    /// [`RawSink::create_as`] writing to `out` (a file, a stream or memory).
+    ///
+    /// # Errors
+    /// As [`RawSink::create_as`].
+    pub fn new(
+        out: AtomicFile,
+        format: Format,
+        like: &SourceInfo,
+        count: u64,
+    ) -> Result<RawSink, IoError> {
         let layout = format
             .bin_layout()
             .expect("create_as is called with a raw format");
@@ -409,7 +432,7 @@ impl RawSink {
             )
         };
         Ok(RawSink {
-            out: AtomicFile::create(path)?,
+            out,
             like: like.schema.clone(),
             raw,
             layout,

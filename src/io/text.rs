@@ -47,7 +47,8 @@ use super::lines::{
 };
 use super::tally::{Tally, check_batch};
 use super::{
-    Extras, Format, IoError, Meta, NOISE_FIELD, Sink, SinkOptions, Source, SourceInfo, Trailer,
+    AtomicFile, Extras, Format, Input, IoError, Meta, NOISE_FIELD, Sink, SinkOptions, Source,
+    SourceInfo, Trailer,
 };
 use crate::points::{FLAG_NOISE, PointBatch, ScalarType, Schema};
 
@@ -257,7 +258,17 @@ impl TextSource {
     /// # Errors
     /// Unreadable file, empty file, a PTS file without a count line, a bad first point.
     pub fn open(path: &Path, flavor: TextFlavor) -> Result<TextSource, IoError> {
-        let mut lines = LineReader::open(path)?;
+        TextSource::new(Input::from_path(path)?, flavor)
+    }
+
+    /// [`TextSource::open`] on any [`Input`].
+    ///
+    /// # Errors
+    /// As [`TextSource::open`].
+    pub fn new(input: Input, flavor: TextFlavor) -> Result<TextSource, IoError> {
+        let owned = input.name().to_path_buf();
+        let path = owned.as_path();
+        let mut lines = LineReader::new(input);
         let mut header = Vec::new();
         let mut after_count = Vec::new();
         let mut comment_lines: Vec<Vec<u8>> = Vec::new();
@@ -594,6 +605,20 @@ impl TextSink {
         count: u64,
         options: &SinkOptions,
     ) -> Result<TextSink, IoError> {
+        TextSink::new(AtomicFile::create(path)?, flavor, like, count, options)
+    }
+
+    /// [`TextSink::create_with`] writing to `file` (a file, a stream or memory).
+    ///
+    /// # Errors
+    /// Write failures.
+    pub fn new(
+        file: AtomicFile,
+        flavor: TextFlavor,
+        like: &SourceInfo,
+        count: u64,
+        options: &SinkOptions,
+    ) -> Result<TextSink, IoError> {
         let schema = like.schema.clone();
         let fields = extra_fields(&schema);
         let noise = match schema.field_index(NOISE_FIELD) {
@@ -612,7 +637,7 @@ impl TextSink {
             Some(m) => (m.header.clone(), m.after_count.clone()),
             None => (Vec::new(), Vec::new()),
         };
-        let mut out = LineSink::create(path, eol)?;
+        let mut out = LineSink::new(file, eol);
         match meta {
             Some(_) => out.raw(&header)?,
             None if flavor == TextFlavor::Xyz

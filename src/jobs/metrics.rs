@@ -9,6 +9,7 @@
 //! | `qemd_phase_duration_seconds` | histogram of pipeline phase wall times | `phase` |
 //! | `qemd_run_duration_seconds` | histogram of whole runs | `path` |
 //! | `qemd_sync_requests_total` | counter | `outcome` = ok, rejected, error |
+//! | `qemd_sync_spooled_total` | counter: synchronous runs that needed a temporary file (a body above the memory budget, E57 or COPC output) | |
 //! | `qemd_uploads_total`, `qemd_upload_bytes_total` | counters of completed uploads | |
 
 use prometheus::{
@@ -38,6 +39,8 @@ pub struct Metrics {
     pub runs: HistogramVec,
     /// Synchronous requests by outcome.
     pub sync_requests: IntCounterVec,
+    /// Synchronous runs that needed a temporary file.
+    pub sync_spooled: IntCounter,
     /// Completed uploads.
     pub uploads: IntCounter,
     /// Bytes of completed uploads.
@@ -99,6 +102,11 @@ impl Metrics {
                 &["outcome"],
             )
             .map_err(internal)?,
+            sync_spooled: IntCounter::new(
+                "qemd_sync_spooled_total",
+                "Synchronous runs that needed a temporary file",
+            )
+            .map_err(internal)?,
             uploads: IntCounter::new("qemd_uploads_total", "Completed uploads")
                 .map_err(internal)?,
             upload_bytes: IntCounter::new("qemd_upload_bytes_total", "Bytes of completed uploads")
@@ -114,6 +122,8 @@ impl Metrics {
         r.register(Box::new(m.phases.clone())).map_err(internal)?;
         r.register(Box::new(m.runs.clone())).map_err(internal)?;
         r.register(Box::new(m.sync_requests.clone()))
+            .map_err(internal)?;
+        r.register(Box::new(m.sync_spooled.clone()))
             .map_err(internal)?;
         r.register(Box::new(m.uploads.clone())).map_err(internal)?;
         r.register(Box::new(m.upload_bytes.clone()))

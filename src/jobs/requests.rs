@@ -51,6 +51,9 @@ pub struct SyncOutput {
     pub format: Format,
     /// What the run did (paths replaced by `input` and `result`).
     pub report: Report,
+    /// True when the run needed a temporary file (a body above the memory budget, E57 or COPC
+    /// output); otherwise nothing touched the disk.
+    pub spooled: bool,
 }
 
 /// A job with its live progress.

@@ -1,7 +1,7 @@
 //! The synchronous path: a small scan denoised now, on the synchronous rayon pool, with nothing
 //! written to the job store.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 
@@ -20,7 +20,7 @@ impl Jobs {
     /// parameters, [`JobsError::BadContent`] for input the readers or the denoiser refuse.
     pub async fn denoise_now(
         &self,
-        body: impl AsRef<[u8]> + Send + 'static,
+        body: impl AsRef<[u8]> + Send + Sync + 'static,
         req: SyncRequest,
     ) -> Result<SyncOutput, JobsError> {
         if self.shutting_down() {
@@ -58,46 +58,35 @@ impl Jobs {
             .await
             .map_err(|_| JobsError::ShuttingDown)?;
         let run = bridge::cpu(&self.inner.sync_pool, move || {
-            let dir = tempfile::Builder::new()
-                .prefix("sync-")
-                .tempdir_in(&tmp)
-                .map_err(|e| JobsError::io("create a request directory", e))?;
-            let input = dir.path().join(format!("in.{input_format}"));
-            let output = dir.path().join(format!("out.{output_format}"));
-            std::fs::write(&input, body.as_ref())
-                .map_err(|e| JobsError::io("write the request body", e))?;
+            // Errors and the report name the request's `input` and `result.<format>`.
             let job = Job {
-                input: input.clone(),
-                output: output.clone(),
+                input: PathBuf::from("input"),
+                output: PathBuf::from(format!("result.{output_format}")),
                 input_format: Some(input_format),
                 output_format: Some(output_format),
                 spec,
             };
             let opts = RunOptions {
                 memory_budget: budget,
-                temp_dir: Some(dir.path().to_path_buf()),
+                // Only a body larger than the memory budget, or E57/COPC output, is spooled here.
+                temp_dir: Some(tmp),
                 tile_points: None,
                 progress: Arc::new(NoProgress),
                 cancel,
                 work_dir: None,
             };
-            match pipeline::run(&job, &opts) {
-                Ok(mut report) => {
-                    let bytes =
-                        std::fs::read(&output).map_err(|e| JobsError::io("read the result", e))?;
-                    report.input = PathBuf::from("input");
-                    report.output = PathBuf::from(format!("result.{output_format}"));
-                    Ok(SyncOutput {
-                        bytes,
-                        format: output_format,
-                        report,
-                    })
-                }
+            match pipeline::run_bytes(body, &job, &opts) {
+                Ok(out) => Ok(SyncOutput {
+                    bytes: out.bytes,
+                    format: output_format,
+                    report: out.report,
+                    spooled: out.spooled,
+                }),
                 Err(PipelineError::Params(e)) => Err(spec_error(e)),
                 Err(e) if client_fault(&e) => Err(JobsError::BadContent(scrub(
                     &e.to_string(),
-                    &input,
-                    &output,
+                    Path::new(""),
+                    Path::new(""),
                     &data_dir,
                 ))),
                 Err(e) => Err(JobsError::Internal(e.to_string())),
@@ -108,6 +97,9 @@ impl Jobs {
         match &run {
             Ok(Ok(out)) => {
                 m.observe("sync", &out.report);
+                if out.spooled {
+                    m.sync_spooled.inc();
+                }
                 m.sync_requests.with_label_values(&["ok"]).inc();
             }
             Ok(Err(JobsError::Internal(_))) | Err(_) => {

@@ -92,6 +92,29 @@ impl PipelineError {
     }
 
     /// The same error naming the stream `input` where it named its spool.
+    /// The error with every mention of the path `from` replaced by `to` (a temporary file by the
+    /// name the user knows).
+    pub(crate) fn with_path(self, from: &Path, to: &Path) -> PipelineError {
+        let swap = |p: PathBuf| if p == from { to.to_path_buf() } else { p };
+        match self {
+            PipelineError::Io(e) => PipelineError::Io(e.with_path(from, to)),
+            PipelineError::Denoise { path, error } => PipelineError::Denoise {
+                path: swap(path),
+                error,
+            },
+            PipelineError::Tiling { path, error } => PipelineError::Tiling {
+                path: swap(path),
+                error,
+            },
+            PipelineError::SameFile { path } => PipelineError::SameFile { path: swap(path) },
+            PipelineError::Report { path, detail } => PipelineError::Report {
+                path: swap(path),
+                detail,
+            },
+            other => other,
+        }
+    }
+
     pub(crate) fn with_input(self, input: &io::InputFile) -> PipelineError {
         let (from, to) = (input.path(), input.shown());
         let swap = |p: PathBuf| if p == from { to.to_path_buf() } else { p };

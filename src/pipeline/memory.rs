@@ -14,7 +14,7 @@ use super::{Job, PipelineError, Report, RunOptions};
 use crate::denoise::cloud;
 use crate::denoise::{DenoiseError, Stats, Timer};
 use crate::geometry::ExactSum;
-use crate::io::{self, BATCH, Cloud};
+use crate::io::{self, BATCH, Cloud, IoError, Sink, SinkOptions, SourceInfo};
 use crate::neighbours::with_cancel;
 use crate::points::{PointBatch, in_range};
 
@@ -41,15 +41,33 @@ pub(super) fn check_points(positions: &[DVec3]) -> Result<(), DenoiseError> {
 /// # Errors
 /// Read, operator and write failures, cancellation.
 pub(crate) fn run(job: &Job, opts: &RunOptions) -> Result<Report, PipelineError> {
-    let mut phases = Stats::default();
-    let mut timer = Timer::start();
+    let timer = Timer::start();
     opts.progress.phase("read", 0);
+    let cloud = Cloud::read(&job.input, job.input_format)?;
+    run_cloud(job, opts, cloud, timer, |info, count, options| {
+        io::create_with(&job.output, job.output_format, info, count, options)
+    })
+}
+
+/// Denoises `cloud`, read for `job` since `timer` started, and writes it to the sink `create`
+/// makes (from the input's layout, the number of points to write and the sink options).
+///
+/// # Errors
+/// Operator and write failures, cancellation.
+pub(crate) fn run_cloud(
+    job: &Job,
+    opts: &RunOptions,
+    cloud: Cloud,
+    mut timer: Timer,
+    create: impl FnOnce(&SourceInfo, u64, &SinkOptions) -> Result<Box<dyn Sink>, IoError>,
+) -> Result<Report, PipelineError> {
+    let mut phases = Stats::default();
     let Cloud {
         info,
         positions,
         records,
         extras,
-    } = Cloud::read(&job.input, job.input_format)?;
+    } = cloud;
     timer.lap("read", &mut phases);
     opts.check_cancel()?;
     let denoise_err = |e| PipelineError::denoise(&job.input, e);
@@ -92,13 +110,7 @@ pub(crate) fn run(job: &Job, opts: &RunOptions) -> Result<Report, PipelineError>
         .filter(|&i| asm.writes(outcome(i).map(|(_, m)| m)))
         .count() as u64;
     opts.progress.phase("write", count);
-    let mut sink = io::create_with(
-        &job.output,
-        job.output_format,
-        &info,
-        count,
-        &sink_options(job, opts),
-    )?;
+    let mut sink = create(&info, count, &sink_options(job, opts))?;
     let mut out = PointBatch::with_capacity(input.record_len, BATCH.min(n));
     let (mut found, mut written) = (0u64, 0u64);
     for i in 0..n {

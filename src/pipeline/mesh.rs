@@ -3,16 +3,31 @@
 
 use super::{Job, PipelineError, Report, normals};
 use crate::denoise::{self, Stats, Timer};
-use crate::io::Cloud;
+use crate::io::{Cloud, IoError};
 
 /// Denoises the mesh `job` names.
 ///
 /// # Errors
 /// Read, operator and write failures.
 pub(crate) fn run(job: &Job) -> Result<Report, PipelineError> {
+    let timer = Timer::start();
+    let cloud = Cloud::read(&job.input, job.input_format)?;
+    run_cloud(job, cloud, timer, |c| {
+        c.write(&job.output, job.output_format)
+    })
+}
+
+/// Denoises the mesh `cloud`, read for `job` since `timer` started, and writes it with `write`.
+///
+/// # Errors
+/// Operator and write failures.
+pub(crate) fn run_cloud(
+    job: &Job,
+    mut cloud: Cloud,
+    mut timer: Timer,
+    write: impl FnOnce(&Cloud) -> Result<(), IoError>,
+) -> Result<Report, PipelineError> {
     let mut phases = Stats::default();
-    let mut timer = Timer::start();
-    let mut cloud = Cloud::read(&job.input, job.input_format)?;
     timer.lap("read", &mut phases);
     let out = denoise::denoise(&cloud.positions, cloud.faces(), &job.spec.params)
         .map_err(|e| PipelineError::denoise(&job.input, e))?;
@@ -24,7 +39,7 @@ pub(crate) fn run(job: &Job) -> Result<Report, PipelineError> {
     cloud.positions = out.positions;
     let normals = normals::recompute_mesh(&mut cloud);
     timer = Timer::start();
-    cloud.write(&job.output, job.output_format)?;
+    write(&cloud)?;
     timer.lap("write", &mut phases);
     let mut r = Report::empty(job, "mesh");
     r.points_in = cloud.len() as u64;

@@ -34,6 +34,7 @@
 
 mod arrays;
 mod assemble;
+mod bytes;
 mod error;
 mod job;
 mod memory;
@@ -47,6 +48,7 @@ mod stream;
 pub mod tiled;
 
 pub use arrays::{PointsOutput, denoise_points};
+pub use bytes::{BytesOutput, run_bytes};
 pub use error::PipelineError;
 pub use job::{Job, OutlierMode};
 pub use normals::NormalsAction;

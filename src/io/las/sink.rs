@@ -231,6 +231,24 @@ impl LasSink {
         options: &SinkOptions,
         compress: bool,
     ) -> Result<LasSink, IoError> {
+        let file = AtomicFile::create_seekable(path, options.temp_dir.as_deref())?;
+        LasSink::new(file, like, count, options, compress)
+    }
+
+    /// [`LasSink::create_as`] writing to `file`, which must seek (a file, a spooled stream,
+    /// memory: see [`AtomicFile::create_seekable`]).
+    ///
+    /// # Errors
+    /// As [`LasSink::create_as`].
+    pub fn new(
+        mut file: AtomicFile,
+        like: &SourceInfo,
+        count: u64,
+        options: &SinkOptions,
+        compress: bool,
+    ) -> Result<LasSink, IoError> {
+        let shown = file.target().to_path_buf();
+        let path = shown.as_path();
         let source = match &like.meta {
             Meta::Las(m) if m.record_len == like.schema.record_len => Some(m),
             _ => None,
@@ -267,7 +285,6 @@ impl LasSink {
             _ => 0,
         };
 
-        let mut file = AtomicFile::create_seekable(path, options.temp_dir.as_deref())?;
         file.write_all(&header).map_err(|e| file.err(e))?;
         file.write_all(&vlr_block).map_err(|e| file.err(e))?;
         let out = match laz {

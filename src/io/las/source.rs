@@ -1,6 +1,5 @@
 //! The streaming LAS/LAZ reader.
 
-use std::fs::File;
 use std::io::{BufReader, Read, Seek, SeekFrom};
 use std::path::Path;
 
@@ -13,7 +12,8 @@ use super::layout::{
     min_header_size,
 };
 use super::{LasMeta, LasTrailer, LasVlr, Piece, guarded, laz_error, laz_io_error, read_at};
-use crate::io::{Extras, Format, IoError, Meta, Source, SourceInfo, Trailer, open_file};
+use crate::io::reader::Reopener;
+use crate::io::{Extras, Format, Input, IoError, Meta, Source, SourceInfo, Trailer};
 use crate::points::PointBatch;
 
 /// Where the pieces after the points lie in the source: `(offset, length, is an EVLR)`.
@@ -22,11 +22,11 @@ type TailPlan = Vec<(u64, u64, bool)>;
 /// The point reader: raw records or a LAZ decompressor.
 enum Points {
     /// No point to read.
-    Empty(BufReader<File>),
+    Empty(BufReader<Input>),
     /// Uncompressed records.
-    Plain(BufReader<File>),
+    Plain(BufReader<Input>),
     /// LASzip-compressed records.
-    Laz(Box<LasZipDecompressor<'static, BufReader<File>>>),
+    Laz(Box<LasZipDecompressor<'static, BufReader<Input>>>),
     /// A LAZ decoder panicked; its state is lost.
     Broken,
 }
@@ -40,6 +40,8 @@ pub struct LasSource {
     read: u64,
     total: u64,
     tail: TailPlan,
+    /// Opens the input again to read the tail after a decoder panic.
+    again: Reopener,
 }
 
 impl LasSource {
@@ -53,8 +55,20 @@ impl LasSource {
     /// [`IoError::Unsupported`] for LAS versions other than 1.0–1.4 or point formats above 10;
     /// [`IoError::Invalid`] for bad LAZ data.
     pub fn open(path: &Path) -> Result<LasSource, IoError> {
-        let mut file = open_file(path)?;
-        let size = file.metadata().map_err(|e| IoError::io(path, e))?.len();
+        LasSource::new(Input::from_path(path)?)
+    }
+
+    /// [`LasSource::open`] on any [`Input`] whose length is known.
+    ///
+    /// # Errors
+    /// As [`LasSource::open`]; an input of unknown length.
+    pub fn new(mut file: Input) -> Result<LasSource, IoError> {
+        let owned = file.name().to_path_buf();
+        let path = owned.as_path();
+        let again = file.reopener();
+        let size = file
+            .len()
+            .ok_or_else(|| IoError::invalid(path, "a LAS file needs a known size, not a stream"))?;
         let io = |e| IoError::io(path, e);
         if size == 0 {
             return Err(IoError::header(path, "empty file, not a LAS file"));
@@ -270,6 +284,7 @@ impl LasSource {
             read: 0,
             total: count,
             tail,
+            again,
         })
     }
 
@@ -285,7 +300,7 @@ impl LasSource {
 /// Splits `[tail_start, size)` into raw bytes and EVLRs, checking every EVLR fits in the file.
 fn plan_tail(
     path: &Path,
-    file: &mut File,
+    file: &mut Input,
     size: u64,
     tail_start: u64,
     first_evlr: Option<(u64, u64)>,
@@ -338,7 +353,7 @@ fn plan_tail(
 /// decompressor at the first point.
 fn open_laz(
     path: &Path,
-    file: File,
+    file: Input,
     size: u64,
     data_start: u64,
     vlrs: &[LasVlr],
@@ -508,7 +523,7 @@ impl Source for LasSource {
         let mut file = match self.points {
             Points::Empty(r) | Points::Plain(r) => r.into_inner(),
             Points::Laz(d) => d.into_inner().into_inner(),
-            Points::Broken => open_file(&path)?,
+            Points::Broken => self.again.open()?,
         };
         let mut pieces = Vec::with_capacity(self.tail.len());
         for &(offset, len, evlr) in &self.tail {

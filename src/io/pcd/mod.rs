@@ -70,7 +70,6 @@
 mod body;
 mod header;
 
-use std::fs::File;
 use std::io::{BufRead, BufReader, Read, Write};
 use std::path::Path;
 
@@ -81,8 +80,8 @@ use self::header::{DEFAULT_VIEWPOINT, Header};
 use super::lines::{LineEnding, show, tokens};
 use super::tally::{Tally, check_batch};
 use super::{
-    AtomicFile, Extras, Format, IoError, Meta, Sink, SinkOptions, Source, SourceInfo, Trailer,
-    foreign_field_type, open_file, regular_len,
+    AtomicFile, Extras, Format, Input, IoError, Meta, Sink, SinkOptions, Source, SourceInfo,
+    Trailer, foreign_field_type,
 };
 use crate::points::{Endian, FLAG_NOISE, Field, PointBatch, ScalarType, Schema};
 
@@ -270,7 +269,7 @@ fn promoted(schema: &Schema) -> Schema {
 /// Streaming PCD reader (`ascii`, `binary`, `binary_compressed`).
 pub struct PcdSource {
     info: SourceInfo,
-    reader: BufReader<File>,
+    reader: BufReader<Input>,
     kind: PcdData,
     total: u64,
     read: u64,
@@ -295,9 +294,18 @@ impl PcdSource {
     /// file that is not PCD, a malformed header or one without x, y or z,
     /// [`IoError::Truncated`] when the file is shorter than the points its header announces.
     pub fn open(path: &Path) -> Result<PcdSource, IoError> {
-        let file = open_file(path)?;
-        let file_len = regular_len(&file);
-        let mut reader = BufReader::with_capacity(READ_BUF, file);
+        PcdSource::new(Input::from_path(path)?)
+    }
+
+    /// [`PcdSource::open`] on any [`Input`].
+    ///
+    /// # Errors
+    /// As [`PcdSource::open`].
+    pub fn new(input: Input) -> Result<PcdSource, IoError> {
+        let owned = input.name().to_path_buf();
+        let path = owned.as_path();
+        let file_len = input.len();
+        let mut reader = BufReader::with_capacity(READ_BUF, input);
         let header = header::read_header(&mut reader, path)?;
         for axis in ["x", "y", "z"] {
             if !header.fields.iter().any(|f| f.name == axis && f.count == 1) {
@@ -456,7 +464,7 @@ impl PcdSource {
 /// Reads the `binary_compressed` size header and LZF block that follow the header, checks them
 /// against the layout and the file length, and decompresses the block.
 fn read_block(
-    reader: &mut BufReader<File>,
+    reader: &mut BufReader<Input>,
     path: &Path,
     layout: &Columns,
     points: u64,
@@ -649,6 +657,21 @@ impl PcdSink {
         count: u64,
         options: &SinkOptions,
     ) -> Result<PcdSink, IoError> {
+        PcdSink::new(AtomicFile::create(path)?, like, count, options)
+    }
+
+    /// [`PcdSink::create`] writing to `out` (a file, a stream or memory).
+    ///
+    /// # Errors
+    /// As [`PcdSink::create`].
+    pub fn new(
+        mut out: AtomicFile,
+        like: &SourceInfo,
+        count: u64,
+        options: &SinkOptions,
+    ) -> Result<PcdSink, IoError> {
+        let shown = out.target().to_path_buf();
+        let path = shown.as_path();
         let (header, kind, reproduce) = match &like.meta {
             Meta::Pcd(m) if schema_of(&m.header.fields).is_ok_and(|s| s == like.schema) => {
                 (m.header.clone(), m.data, Some(m.header.data))
@@ -767,7 +790,6 @@ impl PcdSink {
             (Vec::new(), None)
         };
 
-        let mut out = AtomicFile::create(path)?;
         out.write_all(&header.render(count, kind, append.as_ref()))
             .map_err(|e| out.err(e))?;
         Ok(PcdSink {
