@@ -166,18 +166,23 @@ impl std::error::Error for ApiError {}
 impl From<JobsError> for ApiError {
     fn from(e: JobsError) -> Self {
         match e {
-            JobsError::NotFound(what) => ApiError::NotFound(format!("no such {what}")),
+            JobsError::NoSuch(what) => ApiError::NotFound(format!("no such {what}")),
             JobsError::Invalid { field, detail } => ApiError::Unprocessable {
                 field: Some(field),
                 detail,
             },
-            JobsError::BadContent(d) => ApiError::Unprocessable {
+            JobsError::Rejected(d) => ApiError::Unprocessable {
                 field: None,
                 detail: d,
             },
+            JobsError::Run(e) if e.is_input_fault() => ApiError::Unprocessable {
+                field: None,
+                detail: e.to_string(),
+            },
+            JobsError::Run(e) => ApiError::Internal(e.to_string()),
             JobsError::UnsupportedFormat(d) => ApiError::UnsupportedMediaType(d),
-            JobsError::TooLarge { limit } => ApiError::TooLarge { limit },
-            JobsError::Conflict { detail, offset } => ApiError::Conflict { detail, offset },
+            JobsError::OverLimit { limit } => ApiError::TooLarge { limit },
+            JobsError::WrongState { detail, offset } => ApiError::Conflict { detail, offset },
             JobsError::QueueFull => ApiError::TooManyRequests {
                 detail: "the job queue is full; retry later".into(),
                 retry_after: 5,
@@ -186,7 +191,7 @@ impl From<JobsError> for ApiError {
                 detail: "too many synchronous requests at once; retry shortly".into(),
                 retry_after: 1,
             },
-            JobsError::BadRequest(d) => ApiError::BadRequest(d),
+            JobsError::BodyRead(d) => ApiError::BadRequest(d),
             JobsError::ShuttingDown => ApiError::Unavailable("the server is shutting down".into()),
             e @ (JobsError::Db(_) | JobsError::Io { .. } | JobsError::Internal(_)) => {
                 ApiError::Internal(e.to_string())

@@ -54,6 +54,8 @@ pub use uploads::{DRAIN_MAX, check_hint, discard};
 
 use thiserror::Error;
 
+use crate::pipeline::PipelineError;
+
 /// Errors of the job service; the API maps each to an HTTP status.
 #[derive(Debug, Error)]
 #[non_exhaustive]
@@ -72,7 +74,7 @@ pub enum JobsError {
     },
     /// No such upload or job (for this tenant).
     #[error("no such {0}")]
-    NotFound(&'static str),
+    NoSuch(&'static str),
     /// A request field is invalid.
     #[error("{field}: {detail}")]
     Invalid {
@@ -81,21 +83,26 @@ pub enum JobsError {
         /// What is wrong.
         detail: String,
     },
-    /// The content is not a valid file of its format (or the denoiser refused it).
+    /// An upload's content is not a valid file of its format.
     #[error("{0}")]
-    BadContent(String),
+    Rejected(String),
+    /// A synchronous run failed; its paths are the request's names (`input`, `result.<format>`).
+    /// [`PipelineError::is_input_fault`] tells the input's or the request's fault from the
+    /// server's.
+    #[error(transparent)]
+    Run(PipelineError),
     /// The format is unknown or cannot be told from the content.
     #[error("{0}")]
     UnsupportedFormat(String),
     /// A body or upload is larger than allowed.
     #[error("larger than the limit of {limit} bytes")]
-    TooLarge {
+    OverLimit {
         /// The limit in bytes.
         limit: u64,
     },
     /// The resource is in a state that forbids the request.
     #[error("{detail}")]
-    Conflict {
+    WrongState {
         /// What is in the way.
         detail: String,
         /// For a resumable upload, the offset the server has.
@@ -107,9 +114,9 @@ pub enum JobsError {
     /// Too many synchronous requests at once.
     #[error("too many synchronous requests at once")]
     Busy,
-    /// The request body could not be read.
+    /// The request body broke off or could not be read.
     #[error("{0}")]
-    BadRequest(String),
+    BodyRead(String),
     /// The server is shutting down.
     #[error("the server is shutting down")]
     ShuttingDown,

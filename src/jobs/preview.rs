@@ -7,7 +7,7 @@
 //! * **Selection.** A job's points are numbered in the order the pipeline keeps them (the
 //!   result's order: input points minus those dropped for a non-finite or out-of-range
 //!   coordinate). A scan of at most `preview_points` ([`super::Settings::preview_points`],
-//!   default [`PREVIEW_POINTS`]) kept points is taken whole; a larger one keeps the
+//!   default [`super::service::PREVIEW_POINTS`]) kept points is taken whole; a larger one keeps the
 //!   `preview_points` indices whose [`mix`] hash is smallest (a bottom-k sample of
 //!   the index hashes, independent of the data, the thread count or the tiling). The same indices
 //!   are read from the input and from the result, so the two halves of the preview are the same
@@ -41,9 +41,6 @@ use super::{Jobs, JobsError, bridge};
 use crate::io::{AtomicFile, IoError};
 use crate::pipeline::{OutlierMode, Report};
 use crate::points::{Faces, PointBatch, Schema, in_range};
-
-/// Most points a preview holds on each side, by default.
-pub const PREVIEW_POINTS: u64 = 1_000_000;
 
 /// The preview directory's name inside a job's directory (bumped when the layout changes, so a
 /// server never serves a preview an older version built).
@@ -501,7 +498,7 @@ impl Jobs {
     /// The preview of job `id` of `tenant`, built on first use.
     ///
     /// # Errors
-    /// [`JobsError::NotFound`] (another tenant's job too), [`JobsError::Conflict`] while the job
+    /// [`JobsError::NoSuch`] (another tenant's job too), [`JobsError::WrongState`] while the job
     /// is not successful, build failures.
     pub async fn preview(&self, tenant: &str, id: &str) -> Result<PreviewFiles, JobsError> {
         // The result first: it answers 409 until the job is successful, and a successful row
@@ -517,15 +514,14 @@ impl Jobs {
         let upload =
             self.db(move |s| s.upload(Some(&t), &up))
                 .await?
-                .ok_or(JobsError::Conflict {
+                .ok_or(JobsError::WrongState {
                     detail: format!("the input of job {id} was deleted; there is no preview"),
                     offset: None,
                 })?;
-        let in_ext = upload
+        let in_format = upload
             .format
-            .clone()
             .ok_or_else(|| JobsError::Internal(format!("upload {} has no format", upload.id)))?;
-        let in_path = self.upload_path(&upload.id, &in_ext);
+        let in_path = self.upload_path(&upload.id, in_format);
         let dir = self.job_dir(id).join(DIR);
         let files = |meta| PreviewFiles {
             meta,
@@ -543,14 +539,20 @@ impl Jobs {
         let (d, rp, rf) = (dir.clone(), result.path.clone(), result.format);
         let started = std::time::Instant::now();
         let meta = bridge::blocking(move || {
-            build(&d, (&in_path, &in_ext), (&rp, rf.name()), &report, cap)
+            build(
+                &d,
+                (&in_path, in_format.name()),
+                (&rp, rf.name()),
+                &report,
+                cap,
+            )
         })
         .await??;
         // A job dismissed while its preview was built has lost its directory: answer as for any
         // dismissed job.
         let again = self.job(tenant, id).await?;
         if again.row.status != Status::Successful {
-            return Err(JobsError::NotFound("job"));
+            return Err(JobsError::NoSuch("job"));
         }
         tracing::info!(
             job = id,

@@ -11,11 +11,10 @@ use tracing::{Instrument, error, info, info_span};
 
 use super::ids::{now_ms, sha256_file};
 use super::progress::JobProgress;
-use super::requests::format_of;
 use super::service::{Jobs, Running};
 use super::store::{JobRow, Status, Upload};
 use super::{JobsError, bridge};
-use crate::io::IoError;
+use crate::io::Format;
 use crate::pipeline::{self, Job, PipelineError, Report, RunOptions};
 
 /// Replaces server paths in a message: the input and output by `input` and `result`, the data
@@ -29,15 +28,6 @@ pub(super) fn scrub(msg: &str, input: &Path, output: &Path, data_dir: &Path) -> 
         }
     }
     s
-}
-
-/// Is a pipeline failure the input's or the request's fault (as opposed to the server's)?
-pub(super) fn client_fault(e: &PipelineError) -> bool {
-    match e {
-        PipelineError::Io(io) => !matches!(io, IoError::Io { .. }),
-        PipelineError::Denoise { .. } => true,
-        _ => false,
-    }
 }
 
 impl Jobs {
@@ -105,7 +95,7 @@ impl Jobs {
                 complete: true,
                 id: uid,
                 ..
-            })) => (self.upload_path(&uid, &ext), ext),
+            })) => (self.upload_path(&uid, ext), ext),
             other => {
                 if let Err(e) = other {
                     error!(error = %e, "cannot read the job's upload");
@@ -145,7 +135,7 @@ impl Jobs {
             }
             Ok(Err(e)) => {
                 let msg = scrub(&e.to_string(), &input.0, &output, self.data_dir());
-                if client_fault(&e) {
+                if e.is_input_fault() {
                     info!(error = %msg, "failed");
                 } else {
                     error!(error = %e, "failed");
@@ -162,7 +152,7 @@ impl Jobs {
     pub(super) async fn execute(
         &self,
         row: &JobRow,
-        input: &(PathBuf, String),
+        input: &(PathBuf, Format),
         dir: &Path,
         output: &Path,
         running: &Running,
@@ -171,7 +161,7 @@ impl Jobs {
         let job = Job {
             input: input.0.clone(),
             output: output.to_path_buf(),
-            input_format: format_of(&input.1).ok(),
+            input_format: Some(input.1),
             output_format: Some(spec.output_format),
             spec: spec.denoise.clone(),
         };

@@ -30,10 +30,14 @@ use super::ids::{new_id, now_ms, valid_id};
 use super::metrics::Metrics;
 use super::progress::{JobProgress, ProgressView};
 use super::recovery::{clear_dir, remove_stale_files};
-use super::requests::{JobInfo, JobRequest, ResultFile, format_of, spec_error, validate_output};
+use super::requests::{JobInfo, JobRequest, ResultFile, spec_error, validate_output};
 use super::store::{JobRow, JobSpec, Status, Store};
 use super::{JobsError, bridge};
+use crate::io::Format;
 use crate::pipeline::{self, OutlierMode};
+
+/// The default of [`Settings::preview_points`]: most points on each side of a job's preview.
+pub const PREVIEW_POINTS: u64 = 1_000_000;
 
 /// What the service needs from the configuration.
 #[derive(Debug, Clone)]
@@ -69,7 +73,7 @@ impl Default for Settings {
             outlier_alpha: crate::pipeline::DEFAULT_OUTLIER_ALPHA,
             max_upload_size: 16 << 30,
             sync_concurrency: 8,
-            preview_points: super::preview::PREVIEW_POINTS,
+            preview_points: PREVIEW_POINTS,
         }
     }
 }
@@ -228,8 +232,10 @@ impl Jobs {
         self.data_dir().join("jobs").join(id)
     }
 
-    pub(super) fn upload_path(&self, id: &str, ext: &str) -> PathBuf {
-        self.data_dir().join("uploads").join(format!("{id}.{ext}"))
+    pub(super) fn upload_path(&self, id: &str, format: Format) -> PathBuf {
+        self.data_dir()
+            .join("uploads")
+            .join(format!("{id}.{}", format.name()))
     }
 
     pub(super) fn part_path(&self, id: &str) -> PathBuf {
@@ -290,7 +296,7 @@ impl Jobs {
     ///
     /// # Errors
     /// [`JobsError::Invalid`] naming the bad field (an unknown input is `input`),
-    /// [`JobsError::Conflict`] when the upload is incomplete, [`JobsError::QueueFull`],
+    /// [`JobsError::WrongState`] when the upload is incomplete, [`JobsError::QueueFull`],
     /// [`JobsError::ShuttingDown`].
     pub async fn submit(&self, tenant: &str, req: JobRequest) -> Result<JobRow, JobsError> {
         if self.shutting_down() {
@@ -312,8 +318,8 @@ impl Jobs {
                 detail: format!("no upload with id `{}`", req.input),
             });
         };
-        let Some(input_format) = upload.format.as_deref().filter(|_| upload.complete) else {
-            return Err(JobsError::Conflict {
+        let Some(input_format) = upload.format.filter(|_| upload.complete) else {
+            return Err(JobsError::WrongState {
                 detail: format!(
                     "upload {} is incomplete ({} of {} bytes)",
                     upload.id,
@@ -323,7 +329,7 @@ impl Jobs {
                 offset: Some(upload.size),
             });
         };
-        let output = req.output_format.unwrap_or(format_of(input_format)?);
+        let output = req.output_format.unwrap_or(input_format);
         let mesh = spec.params.mesh_mode(upload.faces.is_some());
         if mesh && spec.outliers != OutlierMode::Off {
             return Err(JobsError::Invalid {
@@ -381,16 +387,16 @@ impl Jobs {
     /// The job `id` of `tenant`, with live progress.
     ///
     /// # Errors
-    /// [`JobsError::NotFound`].
+    /// [`JobsError::NoSuch`].
     pub async fn job(&self, tenant: &str, id: &str) -> Result<JobInfo, JobsError> {
         if !valid_id(id) {
-            return Err(JobsError::NotFound("job"));
+            return Err(JobsError::NoSuch("job"));
         }
         let (t, i) = (tenant.to_string(), id.to_string());
         let row = self
             .db(move |s| s.job(Some(&t), &i))
             .await?
-            .ok_or(JobsError::NotFound("job"))?;
+            .ok_or(JobsError::NoSuch("job"))?;
         Ok(self.with_progress(row))
     }
 
@@ -447,7 +453,7 @@ impl Jobs {
     /// (waiting up to a second for it to stop), and its files are removed.
     ///
     /// # Errors
-    /// [`JobsError::NotFound`].
+    /// [`JobsError::NoSuch`].
     pub async fn dismiss(&self, tenant: &str, id: &str) -> Result<JobInfo, JobsError> {
         let info = self.job(tenant, id).await?;
         if info.row.status == Status::Dismissed {
@@ -493,16 +499,16 @@ impl Jobs {
     /// The result of job `id` of `tenant`.
     ///
     /// # Errors
-    /// [`JobsError::NotFound`] (also for dismissed jobs), [`JobsError::Conflict`] while the job
+    /// [`JobsError::NoSuch`] (also for dismissed jobs), [`JobsError::WrongState`] while the job
     /// is not successful.
     pub async fn result(&self, tenant: &str, id: &str) -> Result<ResultFile, JobsError> {
         let info = self.job(tenant, id).await?;
         let row = info.row;
         match row.status {
             Status::Successful => {}
-            Status::Dismissed => return Err(JobsError::NotFound("job")),
+            Status::Dismissed => return Err(JobsError::NoSuch("job")),
             s => {
-                return Err(JobsError::Conflict {
+                return Err(JobsError::WrongState {
                     detail: format!("job {id} is {}; there is no result", s.as_str()),
                     offset: None,
                 });

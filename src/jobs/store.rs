@@ -84,8 +84,8 @@ pub struct Upload {
     pub size: u64,
     /// SHA-256 of the content (hex), once complete.
     pub sha256: Option<String>,
-    /// Canonical extension of the format (`ply`, `laz`, …), once complete.
-    pub format: Option<String>,
+    /// The format, once complete (stored as its name: `ply`, `laz`, …).
+    pub format: Option<Format>,
     /// The client's file name, when given.
     pub filename: Option<String>,
     /// The format the client declared (`?format=`), applied on completion.
@@ -189,6 +189,20 @@ fn opt_u64(v: Option<i64>) -> Option<u64> {
     v.map(|x| u64::try_from(x).unwrap_or(0))
 }
 
+/// Column `i` of `r`, a format name (NULL: none).
+fn stored_format(r: &Row<'_>, i: usize) -> rusqlite::Result<Option<Format>> {
+    let Some(name) = r.get::<_, Option<String>>(i)? else {
+        return Ok(None);
+    };
+    Format::from_name(&name).map(Some).ok_or_else(|| {
+        rusqlite::Error::FromSqlConversionFailure(
+            i,
+            rusqlite::types::Type::Text,
+            format!("unknown stored format `{name}`").into(),
+        )
+    })
+}
+
 fn upload_from(r: &Row<'_>) -> rusqlite::Result<Upload> {
     Ok(Upload {
         id: r.get(0)?,
@@ -198,7 +212,7 @@ fn upload_from(r: &Row<'_>) -> rusqlite::Result<Upload> {
         length: opt_u64(r.get(4)?),
         size: opt_u64(r.get(5)?).unwrap_or(0),
         sha256: r.get(6)?,
-        format: r.get(7)?,
+        format: stored_format(r, 7)?,
         filename: r.get(8)?,
         hint: r.get(9)?,
         points: opt_u64(r.get(10)?),
@@ -341,7 +355,7 @@ impl Store {
                 u.length.map(to_i64),
                 to_i64(u.size),
                 u.sha256,
-                u.format,
+                u.format.map(Format::name),
                 u.filename,
                 u.hint,
                 u.points.map(to_i64),
@@ -642,7 +656,7 @@ mod tests {
             length: None,
             size: 10,
             sha256: Some("ab".into()),
-            format: Some("ply".into()),
+            format: Some(Format::Ply),
             filename: None,
             hint: None,
             points: Some(3),

@@ -1,12 +1,11 @@
 //! The synchronous path: a small scan denoised now, on the synchronous rayon pool, with nothing
 //! written to the job store.
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 
 use super::requests::{SyncOutput, SyncRequest, spec_error, validate_output};
-use super::run::{client_fault, scrub};
 use super::service::Jobs;
 use super::{JobsError, bridge};
 use crate::pipeline::{self, Job, NoProgress, PipelineError, RunOptions};
@@ -17,7 +16,8 @@ impl Jobs {
     ///
     /// # Errors
     /// [`JobsError::Busy`] beyond `sync_concurrency` requests, [`JobsError::Invalid`] for bad
-    /// parameters, [`JobsError::BadContent`] for input the readers or the denoiser refuse.
+    /// parameters, [`JobsError::Run`] when the run fails (the readers or the denoiser refuse the input, or
+    /// the environment fails).
     pub async fn denoise_now(
         &self,
         body: impl AsRef<[u8]> + Send + Sync + 'static,
@@ -49,7 +49,6 @@ impl Jobs {
         }
         let _guard = CancelOnDrop(cancel.clone());
         let tmp = self.data_dir().join("tmp");
-        let data_dir = self.data_dir().to_path_buf();
         let budget = self.inner.settings.memory_budget;
         let _running = self
             .inner
@@ -83,13 +82,7 @@ impl Jobs {
                     spooled: out.spooled,
                 }),
                 Err(PipelineError::Params(e)) => Err(spec_error(e)),
-                Err(e) if client_fault(&e) => Err(JobsError::BadContent(scrub(
-                    &e.to_string(),
-                    Path::new(""),
-                    Path::new(""),
-                    &data_dir,
-                ))),
-                Err(e) => Err(JobsError::Internal(e.to_string())),
+                Err(e) => Err(JobsError::Run(e)),
             }
         })
         .await;
@@ -101,6 +94,9 @@ impl Jobs {
                     m.sync_spooled.inc();
                 }
                 m.sync_requests.with_label_values(&["ok"]).inc();
+            }
+            Ok(Err(JobsError::Run(e))) if !e.is_input_fault() => {
+                m.sync_requests.with_label_values(&["error"]).inc();
             }
             Ok(Err(JobsError::Internal(_))) | Err(_) => {
                 m.sync_requests.with_label_values(&["error"]).inc();

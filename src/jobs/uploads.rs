@@ -24,6 +24,7 @@ use super::ids::{hex, new_id, now_ms, sha256_file, valid_id};
 use super::requests::{canonical_format, format_of};
 use super::store::Upload;
 use super::{Jobs, JobsError, bridge};
+use crate::io::Format;
 use crate::io::sniff::{SNIFF_LEN, sniff};
 
 /// Removes a file when dropped unless disarmed (a request abandoned mid-body leaves nothing).
@@ -83,7 +84,7 @@ pub fn check_hint(hint: &super::FormatHint) -> Result<(), JobsError> {
 
 /// What validation learnt about a complete upload.
 struct Inspected {
-    ext: String,
+    format: Format,
     points: Option<u64>,
     faces: Option<u64>,
 }
@@ -103,7 +104,7 @@ enum OnFailure {
 /// moved back to `part`, as `on_failure` says.
 fn inspect(
     part: &Path,
-    final_of: impl Fn(&str) -> PathBuf,
+    final_of: impl Fn(Format) -> PathBuf,
     declared: Option<String>,
     on_failure: OnFailure,
 ) -> Result<(Inspected, PathBuf), JobsError> {
@@ -131,7 +132,7 @@ fn inspect(
         }
     };
     let format = format_of(&ext)?;
-    let path = final_of(&ext);
+    let path = final_of(format);
     std::fs::rename(part, &path).map_err(|e| JobsError::io("store an upload", e))?;
     let fail = |msg: String| {
         match on_failure {
@@ -143,7 +144,7 @@ fn inspect(
             }
         }
         let shown = msg.replace(&path.display().to_string(), "upload");
-        JobsError::BadContent(format!("not a valid {ext} file: {shown}"))
+        JobsError::Rejected(format!("not a valid {ext} file: {shown}"))
     };
     let mut src = match crate::io::open(&path, Some(format)) {
         Ok(s) => s,
@@ -160,7 +161,7 @@ fn inspect(
     }
     Ok((
         Inspected {
-            ext,
+            format,
             points: info.len,
             faces: info.faces,
         },
@@ -172,7 +173,7 @@ impl Jobs {
     fn check_size(&self, size: u64) -> Result<(), JobsError> {
         let limit = self.inner.settings.max_upload_size;
         if size > limit {
-            return Err(JobsError::TooLarge { limit });
+            return Err(JobsError::OverLimit { limit });
         }
         Ok(())
     }
@@ -181,8 +182,8 @@ impl Jobs {
     /// the way; `length` is the size the client announced (checked against the limit first).
     ///
     /// # Errors
-    /// [`JobsError::TooLarge`], [`JobsError::BadRequest`] when the body breaks off,
-    /// [`JobsError::UnsupportedFormat`], [`JobsError::BadContent`].
+    /// [`JobsError::OverLimit`], [`JobsError::BodyRead`] when the body breaks off,
+    /// [`JobsError::UnsupportedFormat`], [`JobsError::Rejected`].
     pub async fn receive<S, B, E>(
         &self,
         tenant: &str,
@@ -214,8 +215,7 @@ impl Jobs {
         let mut hasher = Sha256::new();
         let mut size = 0u64;
         while let Some(chunk) = body.next().await {
-            let chunk =
-                chunk.map_err(|e| JobsError::BadRequest(format!("reading the body: {e}")))?;
+            let chunk = chunk.map_err(|e| JobsError::BodyRead(format!("reading the body: {e}")))?;
             let bytes = chunk.as_ref();
             size += bytes.len() as u64;
             if let Err(e) = self.check_size(size) {
@@ -256,7 +256,7 @@ impl Jobs {
             length: Some(size),
             size,
             sha256: Some(sha),
-            format: Some(inspected.ext),
+            format: Some(inspected.format),
             filename: hint.filename,
             hint: hint.format,
             points: inspected.points,
@@ -280,7 +280,7 @@ impl Jobs {
     /// and a row, completed by [`Jobs::append`].
     ///
     /// # Errors
-    /// [`JobsError::TooLarge`], [`JobsError::UnsupportedFormat`] for an unknown format hint.
+    /// [`JobsError::OverLimit`], [`JobsError::UnsupportedFormat`] for an unknown format hint.
     pub async fn create_resumable(
         &self,
         tenant: &str,
@@ -289,7 +289,7 @@ impl Jobs {
     ) -> Result<Upload, JobsError> {
         self.check_size(length)?;
         if length == 0 {
-            return Err(JobsError::BadContent("an upload cannot be empty".into()));
+            return Err(JobsError::Rejected("an upload cannot be empty".into()));
         }
         let _ = declared(&hint)?;
         let upload = Upload {
@@ -320,16 +320,16 @@ impl Jobs {
     /// server has.
     ///
     /// # Errors
-    /// [`JobsError::NotFound`].
+    /// [`JobsError::NoSuch`].
     pub async fn upload(&self, tenant: &str, id: &str) -> Result<Upload, JobsError> {
         if !valid_id(id) {
-            return Err(JobsError::NotFound("upload"));
+            return Err(JobsError::NoSuch("upload"));
         }
         let (t, i) = (tenant.to_string(), id.to_string());
         let mut u = self
             .db(move |s| s.upload(Some(&t), &i))
             .await?
-            .ok_or(JobsError::NotFound("upload"))?;
+            .ok_or(JobsError::NoSuch("upload"))?;
         if !u.complete {
             u.size = tokio::fs::metadata(self.part_path(id))
                 .await
@@ -348,9 +348,9 @@ impl Jobs {
     /// full length and a new `hint` validates it again; DELETE removes it.
     ///
     /// # Errors
-    /// [`JobsError::NotFound`], [`JobsError::Conflict`] (offset mismatch, already complete, a
-    /// concurrent PATCH), [`JobsError::TooLarge`] beyond the declared length,
-    /// [`JobsError::BadRequest`] when the body breaks off, and on completion the errors of
+    /// [`JobsError::NoSuch`], [`JobsError::WrongState`] (offset mismatch, already complete, a
+    /// concurrent PATCH), [`JobsError::OverLimit`] beyond the declared length,
+    /// [`JobsError::BodyRead`] when the body breaks off, and on completion the errors of
     /// validation (saying that the upload is kept and how to name its format).
     pub async fn append<S, B, E>(
         &self,
@@ -370,7 +370,7 @@ impl Jobs {
         }
         let mut upload = self.upload(tenant, id).await?;
         if upload.complete {
-            return Err(JobsError::Conflict {
+            return Err(JobsError::WrongState {
                 detail: format!("upload {id} is already complete"),
                 offset: Some(upload.size),
             });
@@ -384,7 +384,7 @@ impl Jobs {
                 .lock()
                 .unwrap_or_else(|e| e.into_inner());
             if !p.insert(id.to_string()) {
-                return Err(JobsError::Conflict {
+                return Err(JobsError::WrongState {
                     detail: format!("another PATCH of upload {id} is in progress"),
                     offset: None,
                 });
@@ -397,7 +397,7 @@ impl Jobs {
             .map_err(|e| JobsError::io("stat an upload", e))?
             .len();
         if offset != have {
-            return Err(JobsError::Conflict {
+            return Err(JobsError::WrongState {
                 detail: format!("Upload-Offset is {offset}, the server has {have} bytes"),
                 offset: Some(have),
             });
@@ -414,12 +414,12 @@ impl Jobs {
             let bytes = match &chunk {
                 Ok(b) => b.as_ref(),
                 Err(e) => {
-                    broken = Some(JobsError::BadRequest(format!("reading the body: {e}")));
+                    broken = Some(JobsError::BodyRead(format!("reading the body: {e}")));
                     break;
                 }
             };
             if size + bytes.len() as u64 > length {
-                broken = Some(JobsError::TooLarge { limit: length });
+                broken = Some(JobsError::OverLimit { limit: length });
                 discard(&mut body, DRAIN_MAX).await;
                 break;
             }
@@ -475,7 +475,7 @@ impl Jobs {
             Ok((sha, inspected)) => {
                 upload.complete = true;
                 upload.sha256 = Some(sha);
-                upload.format = Some(inspected.ext);
+                upload.format = Some(inspected.format);
                 upload.points = inspected.points;
                 upload.faces = inspected.faces;
                 let row = upload.clone();
@@ -496,7 +496,7 @@ impl Jobs {
                 info!(upload = id, tenant, error = %e, "finished upload kept, not valid as it is");
                 Err(match e {
                     JobsError::UnsupportedFormat(m) => JobsError::UnsupportedFormat(kept(m)),
-                    JobsError::BadContent(m) => JobsError::BadContent(kept(m)),
+                    JobsError::Rejected(m) => JobsError::Rejected(kept(m)),
                     e => e,
                 })
             }
@@ -506,19 +506,19 @@ impl Jobs {
     /// Deletes upload `id` of `tenant` (tus termination) and its file.
     ///
     /// # Errors
-    /// [`JobsError::NotFound`], [`JobsError::Conflict`] while a queued or running job reads it.
+    /// [`JobsError::NoSuch`], [`JobsError::WrongState`] while a queued or running job reads it.
     pub async fn delete_upload(&self, tenant: &str, id: &str) -> Result<(), JobsError> {
         let u = self.upload(tenant, id).await?;
         let i = id.to_string();
         let active = self.db(move |s| s.active_jobs_of_upload(&i)).await?;
         if active > 0 {
-            return Err(JobsError::Conflict {
+            return Err(JobsError::WrongState {
                 detail: format!("{active} queued or running job(s) read upload {id}"),
                 offset: None,
             });
         }
         let path = match &u.format {
-            Some(ext) if u.complete => self.upload_path(id, ext),
+            Some(f) if u.complete => self.upload_path(id, *f),
             _ => self.part_path(id),
         };
         let _ = tokio::fs::remove_file(path).await;

@@ -92,6 +92,16 @@ impl PipelineError {
     }
 
     /// The same error naming the stream `input` where it named its spool.
+    /// True when the input (its content) or the parameters caused the failure, false for the
+    /// environment's failures (an OS error, the temporary directory, cancellation).
+    pub fn is_input_fault(&self) -> bool {
+        match self {
+            PipelineError::Io(io) => !matches!(io, IoError::Io { .. }),
+            PipelineError::Denoise { .. } | PipelineError::Params(_) => true,
+            _ => false,
+        }
+    }
+
     /// The error with every mention of the path `from` replaced by `to` (a temporary file by the
     /// name the user knows).
     pub(crate) fn with_path(self, from: &Path, to: &Path) -> PipelineError {

@@ -645,7 +645,7 @@ mod tests {
         b.extend(layout::vlr_bytes("me", 3, "d", b"payload", true));
         b.extend_from_slice(b"end");
         std::fs::write(&p, &b).unwrap();
-        let mut f = File::open(&p).unwrap();
+        let mut f = Input::from_path(&p).unwrap();
         let size = b.len() as u64;
         let plan = plan_tail(&p, &mut f, size, 4, Some((10, 1))).unwrap();
         assert_eq!(plan, [(4, 6, false), (10, 67, true), (77, 3, false)]);
