@@ -247,7 +247,14 @@ fn sha256_hex(bytes: &[u8]) -> String {
 fn run_job(c: &Client, s: &Server, body: Value) -> (Value, Vec<u8>) {
     let (status, headers, v) = post_job(c, s, &body);
     assert_eq!(status, StatusCode::CREATED, "{v}");
-    assert_eq!(v["status"], "accepted");
+    // The answer shows the job as it is now: a free worker may already have started it.
+    assert!(
+        matches!(
+            v["status"].as_str(),
+            Some("accepted" | "running" | "successful")
+        ),
+        "{v}"
+    );
     let id = v["id"].as_str().unwrap().to_string();
     assert_eq!(
         headers["location"].to_str().unwrap(),

@@ -15,21 +15,28 @@ use axum::response::{IntoResponse, Response};
 
 use crate::jobs::JobsError;
 
-/// An error answered to a client.
-#[derive(Debug)]
+/// An error answered to a client. Its `Display` is the problem's `detail` (an internal error's
+/// says only where to look: the message itself is logged, never sent).
+#[derive(Debug, thiserror::Error)]
 #[non_exhaustive]
 pub enum ApiError {
     /// 400: a malformed request.
+    #[error("{0}")]
     BadRequest(String),
     /// 401: no or a wrong bearer token.
+    #[error("a valid `Authorization: Bearer <token>` is required")]
     Unauthorized,
     /// 404: no such resource (for this tenant).
+    #[error("{0}")]
     NotFound(String),
     /// 404: no such route.
+    #[error("no such route")]
     NoRoute,
     /// 405: the route does not take this method.
+    #[error("this route does not take this method")]
     MethodNotAllowed,
     /// 409: the resource's state forbids the request.
+    #[error("{detail}")]
     Conflict {
         /// What is in the way.
         detail: String,
@@ -37,18 +44,22 @@ pub enum ApiError {
         offset: Option<u64>,
     },
     /// 413: a body or upload is too large.
+    #[error("larger than the limit of {limit} bytes")]
     TooLarge {
         /// The limit in bytes.
         limit: u64,
     },
     /// 415: unknown content type or format.
+    #[error("{0}")]
     UnsupportedMediaType(String),
     /// 416: the range lies outside the file.
+    #[error("the range lies outside the {size} bytes of the file")]
     RangeNotSatisfiable {
         /// File size (sent as `Content-Range: bytes */size`).
         size: u64,
     },
     /// 422: a well-formed request with invalid content.
+    #[error("{}", field_first(field.as_deref(), detail))]
     Unprocessable {
         /// The offending field, when there is one.
         field: Option<String>,
@@ -56,6 +67,7 @@ pub enum ApiError {
         detail: String,
     },
     /// 429: come back later.
+    #[error("{detail}")]
     TooManyRequests {
         /// What is full.
         detail: String,
@@ -63,9 +75,19 @@ pub enum ApiError {
         retry_after: u64,
     },
     /// 503: shutting down or not ready.
+    #[error("{0}")]
     Unavailable(String),
     /// 500: logged, never shown.
+    #[error("internal error; the server log has the details under this response's x-request-id")]
     Internal(String),
+}
+
+/// `detail`, prefixed with `field: ` unless it already starts with the field's name.
+fn field_first(field: Option<&str>, detail: &str) -> String {
+    match field {
+        Some(f) if !detail.starts_with(f) => format!("{f}: {detail}"),
+        _ => detail.to_string(),
+    }
 }
 
 /// The JSON body of a problem response.
@@ -126,42 +148,7 @@ impl ApiError {
             ApiError::Internal(_) => "internal",
         }
     }
-
-    fn detail(&self) -> String {
-        match self {
-            ApiError::BadRequest(d)
-            | ApiError::NotFound(d)
-            | ApiError::UnsupportedMediaType(d)
-            | ApiError::Unavailable(d) => d.clone(),
-            ApiError::Unauthorized => "a valid `Authorization: Bearer <token>` is required".into(),
-            ApiError::NoRoute => "no such route".into(),
-            ApiError::MethodNotAllowed => "this route does not take this method".into(),
-            ApiError::Conflict { detail, .. } => detail.clone(),
-            ApiError::TooLarge { limit } => format!("larger than the limit of {limit} bytes"),
-            ApiError::RangeNotSatisfiable { size } => {
-                format!("the range lies outside the {size} bytes of the file")
-            }
-            ApiError::Unprocessable { field, detail } => match field {
-                Some(f) if !detail.starts_with(f.as_str()) => format!("{f}: {detail}"),
-                _ => detail.clone(),
-            },
-            ApiError::TooManyRequests { detail, .. } => detail.clone(),
-            ApiError::Internal(_) => {
-                "internal error; the server log has the details under this response's \
-                 x-request-id"
-                    .into()
-            }
-        }
-    }
 }
-
-impl std::fmt::Display for ApiError {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "{} {}", self.status().as_u16(), self.detail())
-    }
-}
-
-impl std::error::Error for ApiError {}
 
 impl From<JobsError> for ApiError {
     fn from(e: JobsError) -> Self {
@@ -218,7 +205,7 @@ impl IntoResponse for ApiError {
             kind: format!("urn:qemd:problem:{}", self.slug()),
             title: status.canonical_reason().unwrap_or("Error"),
             status: status.as_u16(),
-            detail: self.detail(),
+            detail: self.to_string(),
             field,
         };
         let json = serde_json::to_vec(&body).unwrap_or_else(|_| b"{}".to_vec());
