@@ -64,6 +64,8 @@ pub enum ApiError {
     },
     /// 503: shutting down or not ready.
     Unavailable(String),
+    /// 504: the run hit its wall-clock limit and was stopped (the detail names the limit).
+    TimeLimit(String),
     /// 500: logged, never shown.
     Internal(String),
 }
@@ -103,6 +105,7 @@ impl ApiError {
             ApiError::Unprocessable { .. } => StatusCode::UNPROCESSABLE_ENTITY,
             ApiError::TooManyRequests { .. } => StatusCode::TOO_MANY_REQUESTS,
             ApiError::Unavailable(_) => StatusCode::SERVICE_UNAVAILABLE,
+            ApiError::TimeLimit(_) => StatusCode::GATEWAY_TIMEOUT,
             ApiError::Internal(_) => StatusCode::INTERNAL_SERVER_ERROR,
         }
     }
@@ -123,6 +126,7 @@ impl ApiError {
             ApiError::Unprocessable { field: None, .. } => "invalid-content",
             ApiError::TooManyRequests { .. } => "too-many-requests",
             ApiError::Unavailable(_) => "unavailable",
+            ApiError::TimeLimit(_) => "time-limit",
             ApiError::Internal(_) => "internal",
         }
     }
@@ -132,7 +136,8 @@ impl ApiError {
             ApiError::BadRequest(d)
             | ApiError::NotFound(d)
             | ApiError::UnsupportedMediaType(d)
-            | ApiError::Unavailable(d) => d.clone(),
+            | ApiError::Unavailable(d)
+            | ApiError::TimeLimit(d) => d.clone(),
             ApiError::Unauthorized => "a valid `Authorization: Bearer <token>` is required".into(),
             ApiError::NoRoute => "no such route".into(),
             ApiError::MethodNotAllowed => "this route does not take this method".into(),
@@ -188,6 +193,9 @@ impl From<JobsError> for ApiError {
             },
             JobsError::BadRequest(d) => ApiError::BadRequest(d),
             JobsError::ShuttingDown => ApiError::Unavailable("the server is shutting down".into()),
+            e @ JobsError::TimeLimit { .. } => ApiError::TimeLimit(format!(
+                "{e}; the run was stopped. Larger scans belong in a job (POST /v1/jobs)"
+            )),
             e @ (JobsError::Db(_) | JobsError::Io { .. } | JobsError::Internal(_)) => {
                 ApiError::Internal(e.to_string())
             }

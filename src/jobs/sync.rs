@@ -5,6 +5,7 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 
+use super::limit::Deadline;
 use super::requests::{SyncOutput, SyncRequest, spec_error, validate_output};
 use super::run::{client_fault, scrub};
 use super::service::Jobs;
@@ -17,7 +18,8 @@ impl Jobs {
     ///
     /// # Errors
     /// [`JobsError::Busy`] beyond `sync_concurrency` requests, [`JobsError::Invalid`] for bad
-    /// parameters, [`JobsError::BadContent`] for input the readers or the denoiser refuse.
+    /// parameters, [`JobsError::BadContent`] for input the readers or the denoiser refuse,
+    /// [`JobsError::TimeLimit`] past `sync_time_limit`.
     pub async fn denoise_now(
         &self,
         body: impl AsRef<[u8]> + Send + 'static,
@@ -48,6 +50,9 @@ impl Jobs {
             }
         }
         let _guard = CancelOnDrop(cancel.clone());
+        // The limit counts from here, waiting for a core included (issue 15).
+        let limit = self.inner.settings.sync_time_limit;
+        let deadline = Deadline::arm(limit, "sync_time_limit", cancel.clone());
         let tmp = self.data_dir().join("tmp");
         let data_dir = self.data_dir().to_path_buf();
         let budget = self.inner.settings.memory_budget;
@@ -104,8 +109,17 @@ impl Jobs {
             }
         })
         .await;
+        deadline.disarm();
+        let run = match run {
+            // Stopped by the limit (a cancelled run is not the client's fault, hence Internal).
+            Ok(Err(JobsError::Internal(_))) if deadline.expired() => Ok(Err(deadline.error())),
+            other => other,
+        };
         let m = &self.inner.metrics;
         match &run {
+            Ok(Err(JobsError::TimeLimit { .. })) => {
+                m.sync_requests.with_label_values(&["timeout"]).inc();
+            }
             Ok(Ok(out)) => {
                 m.observe("sync", &out.report);
                 m.sync_requests.with_label_values(&["ok"]).inc();
