@@ -3,6 +3,7 @@
 //! flags override all of them.
 
 use std::path::{Path, PathBuf};
+use std::time::Duration;
 
 use bytesize::ByteSize;
 use figment::Figment;
@@ -27,6 +28,8 @@ pub const KEYS: &[&str] = &[
     "job_tile_points",
     "sync_concurrency",
     "preview_points",
+    "job_time_limit",
+    "sync_time_limit",
     "log_format",
     "log_level",
 ];
@@ -73,6 +76,12 @@ pub struct Config {
     pub sync_concurrency: usize,
     /// `serve`: most points on each side of a job's before/after preview (the web viewer).
     pub preview_points: u64,
+    /// `serve`: wall-clock limit of one run of a job (`6h`, `90m`; a bare number is seconds).
+    #[serde(with = "duration")]
+    pub job_time_limit: Duration,
+    /// `serve`: wall-clock limit of a synchronous request.
+    #[serde(with = "duration")]
+    pub sync_time_limit: Duration,
     /// `serve`: log line format.
     pub log_format: LogFormat,
     /// `serve`: log filter (tracing `EnvFilter` syntax).
@@ -139,6 +148,15 @@ impl Config {
         if self.job_tile_points < 1000 {
             return bad("job_tile_points", "must be at least 1000");
         }
+        let limits = Duration::from_secs(1)..=Duration::from_secs(365 * 86_400);
+        for (key, limit) in [
+            ("job_time_limit", self.job_time_limit),
+            ("sync_time_limit", self.sync_time_limit),
+        ] {
+            if !limits.contains(&limit) {
+                return bad(key, "must be between 1s and 365days");
+            }
+        }
         if self.max_upload_size.as_u64() == 0 || self.max_sync_size.as_u64() == 0 {
             return bad("max_upload_size and max_sync_size", "must be positive");
         }
@@ -185,6 +203,33 @@ impl Config {
     }
 }
 
+/// Durations as people write them (`6h`, `1m 30s`, humantime's syntax), or a number of seconds.
+mod duration {
+    use std::time::Duration;
+
+    use serde::{Deserialize, Deserializer, Serializer};
+
+    pub fn serialize<S: Serializer>(d: &Duration, s: S) -> Result<S::Ok, S::Error> {
+        s.serialize_str(&humantime::format_duration(*d).to_string())
+    }
+
+    #[derive(Deserialize)]
+    #[serde(untagged)]
+    enum Text {
+        Seconds(u64),
+        Human(String),
+    }
+
+    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<Duration, D::Error> {
+        match Text::deserialize(d)? {
+            Text::Seconds(s) => Ok(Duration::from_secs(s)),
+            Text::Human(h) => humantime::parse_duration(h.trim()).map_err(|e| {
+                serde::de::Error::custom(format!("`{h}` is not a duration like 90s or 6h: {e}"))
+            }),
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -227,6 +272,24 @@ mod tests {
     }
 
     #[test]
+    fn issue15_time_limits_parse_as_durations() {
+        let c = Config::load(None).unwrap();
+        assert_eq!(c.job_time_limit, crate::jobs::JOB_TIME_LIMIT);
+        assert_eq!(c.sync_time_limit, crate::jobs::SYNC_TIME_LIMIT);
+        let dir = tempfile::tempdir().unwrap();
+        let f = dir.path().join("c.toml");
+        std::fs::write(&f, "job_time_limit = \"1h 30m\"\nsync_time_limit = 5\n").unwrap();
+        let c = Config::load(Some(&f)).unwrap();
+        assert_eq!(c.job_time_limit, Duration::from_secs(5400));
+        assert_eq!(c.sync_time_limit, Duration::from_secs(5));
+        std::fs::write(&f, "sync_time_limit = \"5 parsecs\"\n").unwrap();
+        assert!(matches!(
+            Config::load(Some(&f)),
+            Err(ConfigError::Invalid(m)) if m.contains("sync_time_limit") && m.contains("5 parsecs")
+        ));
+    }
+
+    #[test]
     fn service_keys_and_tokens() {
         let c = Config::load(None).unwrap();
         assert_eq!(c.listen, "127.0.0.1:8080");
@@ -256,6 +319,8 @@ mod tests {
             "job_concurrency = 0",
             "log_format = \"xml\"",
             "listen = \"8080\"",
+            "job_time_limit = \"0s\"",
+            "sync_time_limit = \"soon\"",
         ] {
             std::fs::write(&f, bad).unwrap();
             assert!(Config::load(Some(&f)).is_err(), "{bad}");

@@ -96,6 +96,8 @@ fn serve(a: ServeArgs) -> Result<()> {
             max_upload_size: config.max_upload_size.as_u64(),
             sync_concurrency: config.sync_concurrency,
             preview_points: config.preview_points,
+            job_time_limit: config.job_time_limit,
+            sync_time_limit: config.sync_time_limit,
         },
         api: ApiSettings {
             tokens: config.tokens()?,

@@ -77,6 +77,9 @@ pub enum ApiError {
     /// 503: shutting down or not ready.
     #[error("{0}")]
     Unavailable(String),
+    /// 504: the run hit its wall-clock limit and was stopped (the detail names the limit).
+    #[error("{0}")]
+    TimeLimit(String),
     /// 500: logged, never shown.
     #[error("internal error; the server log has the details under this response's x-request-id")]
     Internal(String),
@@ -125,6 +128,7 @@ impl ApiError {
             ApiError::Unprocessable { .. } => StatusCode::UNPROCESSABLE_ENTITY,
             ApiError::TooManyRequests { .. } => StatusCode::TOO_MANY_REQUESTS,
             ApiError::Unavailable(_) => StatusCode::SERVICE_UNAVAILABLE,
+            ApiError::TimeLimit(_) => StatusCode::GATEWAY_TIMEOUT,
             ApiError::Internal(_) => StatusCode::INTERNAL_SERVER_ERROR,
         }
     }
@@ -145,6 +149,7 @@ impl ApiError {
             ApiError::Unprocessable { field: None, .. } => "invalid-content",
             ApiError::TooManyRequests { .. } => "too-many-requests",
             ApiError::Unavailable(_) => "unavailable",
+            ApiError::TimeLimit(_) => "time-limit",
             ApiError::Internal(_) => "internal",
         }
     }
@@ -180,6 +185,9 @@ impl From<JobsError> for ApiError {
             },
             JobsError::BodyRead(d) => ApiError::BadRequest(d),
             JobsError::ShuttingDown => ApiError::Unavailable("the server is shutting down".into()),
+            e @ JobsError::TimeLimit { .. } => ApiError::TimeLimit(format!(
+                "{e}; the run was stopped. Larger scans belong in a job (POST /v1/jobs)"
+            )),
             e @ (JobsError::Db(_) | JobsError::Io { .. } | JobsError::Internal(_)) => {
                 ApiError::Internal(e.to_string())
             }

@@ -35,15 +35,25 @@ struct UploadQuery {
     filename: Option<String>,
 }
 
-/// Parses a query string into `T`, answering 400 naming the problem.
+/// Parses a query string into `T`; an unknown, repeated or ill-typed parameter answers 422
+/// naming it, as the parameters of `/v1/denoise` and the fields of a job body do.
 pub(crate) fn parse_query<T: serde::de::DeserializeOwned + Default>(
     q: Option<String>,
 ) -> Result<T, ApiError> {
-    match q {
-        None => Ok(T::default()),
-        Some(q) => serde_urlencoded::from_str(&q)
-            .map_err(|e| ApiError::BadRequest(format!("query string: {e}"))),
-    }
+    let Some(q) = q else {
+        return Ok(T::default());
+    };
+    let pairs = serde_urlencoded::Deserializer::new(form_urlencoded::parse(q.as_bytes()));
+    serde_path_to_error::deserialize(pairs).map_err(|e| {
+        let msg = e.inner().to_string();
+        let field = super::jobs::field_of(&e.path().to_string(), &msg, "");
+        // serde names a repeated parameter in the message only.
+        let field = match msg.strip_prefix("duplicate field `") {
+            Some(rest) => rest.split('`').next().unwrap_or_default().to_string(),
+            None => field,
+        };
+        ApiError::invalid(field, msg)
+    })
 }
 
 fn header_u64(headers: &HeaderMap, name: &str) -> Result<Option<u64>, ApiError> {

@@ -8,7 +8,7 @@
 //! | `qemd_points_processed_total` | counter: points read by finished runs | `path` = job, sync |
 //! | `qemd_phase_duration_seconds` | histogram of pipeline phase wall times | `phase` |
 //! | `qemd_run_duration_seconds` | histogram of whole runs | `path` |
-//! | `qemd_sync_requests_total` | counter | `outcome` = ok, rejected, error |
+//! | `qemd_sync_requests_total` | counter | `outcome` = ok, rejected, error, timeout |
 //! | `qemd_sync_spooled_total` | counter: synchronous runs that needed a temporary file (a body above the memory budget, E57 or COPC output) | |
 //! | `qemd_uploads_total`, `qemd_upload_bytes_total` | counters of completed uploads | |
 
@@ -134,7 +134,7 @@ impl Metrics {
         for p in ["job", "sync"] {
             m.points.with_label_values(&[p]).inc_by(0);
         }
-        for o in ["ok", "rejected", "error"] {
+        for o in ["ok", "rejected", "error", "timeout"] {
             m.sync_requests.with_label_values(&[o]).inc_by(0);
         }
         Ok(m)

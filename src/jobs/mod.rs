@@ -34,6 +34,7 @@
 
 pub mod bridge;
 mod ids;
+mod limit;
 pub mod metrics;
 pub mod preview;
 pub mod progress;
@@ -45,6 +46,7 @@ pub mod store;
 mod sync;
 mod uploads;
 
+pub use limit::{JOB_TIME_LIMIT, SYNC_TIME_LIMIT, format_limit};
 pub use requests::{
     FormatHint, JobInfo, JobRequest, ResultFile, SyncOutput, SyncRequest, canonical_format,
 };
@@ -120,6 +122,14 @@ pub enum JobsError {
     /// The server is shutting down.
     #[error("the server is shutting down")]
     ShuttingDown,
+    /// A run hit its wall-clock limit and was stopped (issue 15).
+    #[error("exceeded the time limit of {lim} ({key})", lim = crate::jobs::limit::format_limit(*.limit))]
+    TimeLimit {
+        /// The limit.
+        limit: std::time::Duration,
+        /// The setting that sets it (`job_time_limit`, `sync_time_limit`).
+        key: &'static str,
+    },
     /// Anything else: a bug or an environment failure (never shown to clients).
     #[error("{0}")]
     Internal(String),

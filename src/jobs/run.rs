@@ -10,6 +10,7 @@ use tokio::sync::watch;
 use tracing::{Instrument, error, info, info_span};
 
 use super::ids::{now_ms, sha256_file};
+use super::limit::Deadline;
 use super::progress::JobProgress;
 use super::service::{Jobs, Running};
 use super::store::{JobRow, Status, Upload};
@@ -110,7 +111,13 @@ impl Jobs {
         };
         let dir = self.job_dir(&id);
         let output = dir.join(format!("result.{}", row.spec.output_format));
+        let deadline = Deadline::arm(
+            self.inner.settings.job_time_limit,
+            "job_time_limit",
+            running.cancel.clone(),
+        );
         let outcome = self.execute(&row, &input, &dir, &output, &running).await;
+        deadline.disarm();
         let _ = self.lock_running().remove(&id);
         let dismissed = running.dismissed.load(Ordering::SeqCst);
         match outcome {
@@ -125,6 +132,13 @@ impl Jobs {
                 self.remove_job_files(&id).await;
             }
             Ok(Ok(report)) => self.finish_success(&id, report, &dir, &output).await,
+            Ok(Err(PipelineError::Cancelled)) if deadline.expired() => {
+                // Over its limit: failed for good (a restart does not give it another run).
+                let msg = deadline.error().to_string();
+                info!(error = %msg, "failed");
+                self.finish_failed(&id, &msg).await;
+                self.remove_job_files(&id).await;
+            }
             Ok(Err(PipelineError::Cancelled)) if self.shutting_down() => {
                 // Back in the queue of the next start; the finished tiles stay as checkpoints.
                 let i = id.clone();

@@ -60,6 +60,11 @@ pub struct Settings {
     pub sync_concurrency: usize,
     /// Most points on each side of a job's preview ([`super::preview`]).
     pub preview_points: u64,
+    /// Wall-clock limit of one run of a job: beyond it the job is cancelled and ends `failed`.
+    pub job_time_limit: Duration,
+    /// Wall-clock limit of a synchronous request (waiting for a core included): beyond it the
+    /// run is cancelled and the answer is 504.
+    pub sync_time_limit: Duration,
 }
 
 impl Default for Settings {
@@ -74,6 +79,8 @@ impl Default for Settings {
             max_upload_size: 16 << 30,
             sync_concurrency: 8,
             preview_points: PREVIEW_POINTS,
+            job_time_limit: super::limit::JOB_TIME_LIMIT,
+            sync_time_limit: super::limit::SYNC_TIME_LIMIT,
         }
     }
 }

@@ -5,6 +5,7 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 
+use super::limit::Deadline;
 use super::requests::{SyncOutput, SyncRequest, spec_error, validate_output};
 use super::service::Jobs;
 use super::{JobsError, bridge};
@@ -16,8 +17,8 @@ impl Jobs {
     ///
     /// # Errors
     /// [`JobsError::Busy`] beyond `sync_concurrency` requests, [`JobsError::Invalid`] for bad
-    /// parameters, [`JobsError::Run`] when the run fails (the readers or the denoiser refuse the input, or
-    /// the environment fails).
+    /// parameters, [`JobsError::Run`] when the run fails (the readers or the denoiser refuse the
+    /// input, or the environment fails), [`JobsError::TimeLimit`] past `sync_time_limit`.
     pub async fn denoise_now(
         &self,
         body: impl AsRef<[u8]> + Send + Sync + 'static,
@@ -48,6 +49,9 @@ impl Jobs {
             }
         }
         let _guard = CancelOnDrop(cancel.clone());
+        // The limit counts from here, waiting for a core included (issue 15).
+        let limit = self.inner.settings.sync_time_limit;
+        let deadline = Deadline::arm(limit, "sync_time_limit", cancel.clone());
         let tmp = self.data_dir().join("tmp");
         let budget = self.inner.settings.memory_budget;
         let _running = self
@@ -86,8 +90,21 @@ impl Jobs {
             }
         })
         .await;
+        deadline.disarm();
+        let run = match run {
+            // Stopped by the limit (a cancelled run is not the client's fault, hence Internal).
+            Ok(Err(JobsError::Run(PipelineError::Cancelled) | JobsError::Internal(_)))
+                if deadline.expired() =>
+            {
+                Ok(Err(deadline.error()))
+            }
+            other => other,
+        };
         let m = &self.inner.metrics;
         match &run {
+            Ok(Err(JobsError::TimeLimit { .. })) => {
+                m.sync_requests.with_label_values(&["timeout"]).inc();
+            }
             Ok(Ok(out)) => {
                 m.observe("sync", &out.report);
                 if out.spooled {

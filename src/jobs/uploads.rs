@@ -377,24 +377,16 @@ impl Jobs {
         }
         let length = upload.length.unwrap_or(0);
         // One PATCH per upload at a time: a second one would interleave bytes.
-        let _lock = {
-            let mut p = self
-                .inner
-                .patching
-                .lock()
-                .unwrap_or_else(|e| e.into_inner());
-            if !p.insert(id.to_string()) {
-                return Err(JobsError::WrongState {
-                    detail: format!("another PATCH of upload {id} is in progress"),
-                    offset: None,
-                });
-            }
-            PatchLock(self.clone(), id.to_string())
-        };
+        let _lock = self.lock_patch(id, "another PATCH of upload {id} is in progress")?;
         let part = self.part_path(id);
+        // Gone since the row was read: a DELETE finished in between (issue 15: this was a 500).
+        let gone = |e: std::io::Error, what: &str| match e.kind() {
+            std::io::ErrorKind::NotFound => JobsError::NoSuch("upload"),
+            _ => JobsError::io(what, e),
+        };
         let have = tokio::fs::metadata(&part)
             .await
-            .map_err(|e| JobsError::io("stat an upload", e))?
+            .map_err(|e| gone(e, "stat an upload"))?
             .len();
         if offset != have {
             return Err(JobsError::WrongState {
@@ -406,7 +398,7 @@ impl Jobs {
             .append(true)
             .open(&part)
             .await
-            .map_err(|e| JobsError::io("open an upload", e))?;
+            .map_err(|e| gone(e, "open an upload"))?;
         let mut out = tokio::io::BufWriter::with_capacity(1 << 20, file);
         let mut size = have;
         let mut broken = None;
@@ -506,9 +498,12 @@ impl Jobs {
     /// Deletes upload `id` of `tenant` (tus termination) and its file.
     ///
     /// # Errors
-    /// [`JobsError::NoSuch`], [`JobsError::WrongState`] while a queued or running job reads it.
+    /// [`JobsError::NoSuch`], [`JobsError::WrongState`] while a queued or running job reads it
+    /// or a PATCH writes to it.
     pub async fn delete_upload(&self, tenant: &str, id: &str) -> Result<(), JobsError> {
         let u = self.upload(tenant, id).await?;
+        // Not while a PATCH writes to it (its bytes would go to a removed file).
+        let _lock = self.lock_patch(id, "a PATCH of upload {id} is in progress; retry")?;
         let i = id.to_string();
         let active = self.db(move |s| s.active_jobs_of_upload(&i)).await?;
         if active > 0 {
@@ -526,6 +521,24 @@ impl Jobs {
         self.db(move |s| s.delete_upload(&i)).await?;
         info!(upload = id, tenant, "upload deleted");
         Ok(())
+    }
+}
+
+impl Jobs {
+    /// Takes upload `id`'s PATCH lock, or answers 409 with `busy` (`{id}` replaced).
+    fn lock_patch(&self, id: &str, busy: &str) -> Result<PatchLock, JobsError> {
+        let mut p = self
+            .inner
+            .patching
+            .lock()
+            .unwrap_or_else(|e| e.into_inner());
+        if !p.insert(id.to_string()) {
+            return Err(JobsError::WrongState {
+                detail: busy.replace("{id}", id),
+                offset: None,
+            });
+        }
+        Ok(PatchLock(self.clone(), id.to_string()))
     }
 }
 
