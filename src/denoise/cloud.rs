@@ -625,6 +625,61 @@ mod tests {
 
     use super::*;
 
+    /// A noisy grid plane, exact duplicates, a far cluster of 10 points (8 or more but fewer
+    /// than 16 within the isolation radius: isolated at k = 16, not at k = 8) and far singles.
+    fn issue9_cloud() -> Vec<DVec3> {
+        let mut pts = Vec::new();
+        for i in 0..60 {
+            for j in 0..60 {
+                let h = ((i * 7919 + j * 104_729) % 1000) as f64 / 1000.0;
+                pts.push(DVec3::new(i as f64, j as f64, 0.05 * h));
+            }
+        }
+        for i in 0..40 {
+            pts.push(pts[i * 37]);
+        }
+        for i in 0..10 {
+            pts.push(DVec3::new(5000.0 + i as f64, 3.0, 0.1 * (i % 3) as f64));
+        }
+        pts.push(DVec3::new(-9000.0, 0.0, 0.0));
+        pts.push(DVec3::new(0.0, 9000.0, 1.0));
+        pts
+    }
+
+    #[test]
+    fn issue9_globals_from_the_k_lists_equal_the_separate_pre_pass() {
+        let pts = issue9_cloud();
+        let ties: Vec<u64> = (0..pts.len() as u64).map(|i| 3 * i + 1).collect();
+        let origin = crate::denoise::origin_of(&pts);
+        let run = CloudRun {
+            positions: &pts,
+            ties: &ties,
+            origin,
+            region: None,
+            isolation: crate::denoise::isolation::of_cloud(&pts, &ties, origin, 16),
+            complete: None,
+        };
+        let guarded = Params::default();
+        let bilateral = Params {
+            method: Method::Bilateral,
+            ..Params::default()
+        };
+        for params in [guarded, bilateral] {
+            let kg = globals_k(&params);
+            let g = graph(&run, params.k()).unwrap();
+            // The far cluster is isolated in the k-list graph but not in the kg one.
+            let capped = (0..pts.len())
+                .filter(|&j| g.isolated[j] && g.lists.get(j).len() >= kg)
+                .count();
+            assert_eq!(capped, 10, "{:?}", params.method);
+            let counted = |i: usize| i % 5 != 0;
+            let separate = globals_partial(&run, &params, counted).unwrap().0;
+            let shared = partial_of(&params, &g, kg, counted);
+            assert_eq!(shared, separate, "{:?}", params.method);
+            assert!(separate.noise.count > 0 || separate.spacing.count() > 0);
+        }
+    }
+
     #[test]
     fn a_set_cancel_flag_stops_between_passes() {
         assert!(check_cancel().is_ok());
