@@ -1,6 +1,8 @@
 //! Kernel benchmarks, reported in points (or matrices) per second:
 //! k-NN for k = 8/16/32, k-NN on a uniform against a cluttered cloud (`knn_clutter`), PCA normals,
-//! the quadric solve, the eigensolver against nalgebra, and the whole point-mode operator.
+//! the quadric solve, the stages of the guarded default (`guarded_k16`: fits, classes and noise
+//! scales, the global noise pre-pass, the normal filter, one guarded update), the eigensolver
+//! against nalgebra, and the whole point-mode operator.
 //!
 //! `QEMD_BENCH_POINTS` sets the cloud size (default 200 000).
 
@@ -199,6 +201,65 @@ fn normals_and_solve(c: &mut Criterion) {
     g.finish();
 }
 
+/// The stages of the guarded default operator after the k-NN (`denoise::cloud::run`), each on
+/// the same 16-NN graph, in points per second.
+fn guarded_stages(c: &mut Criterion) {
+    use qem_denoise::denoise::guarded::{self, Guard};
+    use qem_denoise::denoise::normals::filter_point_normals;
+    use qem_denoise::denoise::structure::{classify, local_fits, near_residuals, noise_scale};
+    let pts = cloud(size());
+    let index = KnnIndex::build(&pts, origin_of(&pts)).unwrap();
+    let (lists, radii) = index.knn_all(16).unwrap();
+    let params = Params::default();
+    let mut near = near_residuals(&pts, &lists);
+    let m = near.len() / 2;
+    let global = *near.select_nth_unstable_by(m, f64::total_cmp).1;
+    let fits = local_fits(&pts, &lists);
+    let classes = classify(&fits, &lists, &radii);
+    let noise = noise_scale(&fits, &lists);
+    let bound: Vec<f64> = noise.iter().map(|s| s.min(global)).collect();
+    let planes: Vec<DVec3> = fits
+        .iter()
+        .zip(&classes)
+        .map(|(f, c)| {
+            if c.takes_planes() {
+                f.normal
+            } else {
+                DVec3::ZERO
+            }
+        })
+        .collect();
+    let normals = filter_point_normals(&pts, &lists, &radii, &planes, 0.2, 3);
+    let mut g = c.benchmark_group("guarded_k16");
+    g.sample_size(10);
+    g.throughput(Throughput::Elements(pts.len() as u64));
+    g.bench_function("global_noise_prepass", |b| {
+        b.iter(|| black_box(near_residuals(&pts, &lists)))
+    });
+    g.bench_function("local_fits", |b| {
+        b.iter(|| black_box(local_fits(&pts, &lists)))
+    });
+    g.bench_function("classes_and_noise_scales", |b| {
+        b.iter(|| black_box((classify(&fits, &lists, &radii), noise_scale(&fits, &lists))))
+    });
+    g.bench_function("normal_filter_3", |b| {
+        b.iter(|| black_box(filter_point_normals(&pts, &lists, &radii, &planes, 0.2, 3)))
+    });
+    let guard = Guard {
+        start: &pts,
+        normals: &normals,
+        fits: &fits,
+        classes: &classes,
+        noise: &noise,
+        bound: &bound,
+        max_move: None,
+    };
+    g.bench_function("guarded_update", |b| {
+        b.iter(|| black_box(guarded::step(&pts, &lists, &guard, &params)))
+    });
+    g.finish();
+}
+
 fn eigen(c: &mut Criterion) {
     let mats: Vec<SymMat3> = cloud(100_000)
         .chunks(4)
@@ -232,5 +293,12 @@ fn eigen(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, knn, knn_clutter, normals_and_solve, eigen);
+criterion_group!(
+    benches,
+    knn,
+    knn_clutter,
+    normals_and_solve,
+    guarded_stages,
+    eigen
+);
 criterion_main!(benches);

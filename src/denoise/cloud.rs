@@ -43,7 +43,7 @@ use super::qem::is_duplicate;
 use super::structure::{Structure, classify, local_fits, noise_scale};
 use super::{DenoiseError, Method, Params, Stats, StructureCounts, Timer, bilateral, qem};
 use crate::geometry::ExactSum;
-use crate::neighbours::{KnnIndex, Neighbourhoods};
+use crate::neighbours::{KnnIndex, Neighbourhoods, NeighboursError};
 use crate::points::Aabb;
 
 /// Scalars computed over the whole cloud before the operator runs.
@@ -52,7 +52,7 @@ pub struct Globals {
     /// Mean distance from a point to its nearest other point (the point-cloud L); the bilateral
     /// σc. Zero when the method does not need it.
     pub spacing: f64,
-    /// The sensor's noise: the median over all points of [`super::structure::LocalFit::near`]
+    /// The sensor's noise: the median over all points of [`super::structure::near_residual`]
     /// (the RMS residual of the plane through a point's nearest 8), read as the upper edge of its
     /// 2 % histogram bin. It caps every guarded step (one scan, one sensor, one noise level, so a
     /// coarse far-range neighbourhood cannot license a step of its own coarse scale). Zero when
@@ -110,38 +110,68 @@ pub fn globals_partial(
     params: &Params,
     counted: impl Fn(usize) -> bool,
 ) -> Result<(GlobalsPartial, Vec<bool>), DenoiseError> {
-    let k = if guarded_qem(params) {
+    let kg = globals_k(params);
+    let g = graph(run, kg)?;
+    let exact_f = taint(run, &g.frame.positions, &g.lists, &g.radii, 0);
+    let mut exact = vec![false; run.positions.len()];
+    for (j, &i) in g.frame.order.iter().enumerate() {
+        exact[i as usize] = !exact_f[j];
+    }
+    Ok((partial_of(params, &g, kg, counted), exact))
+}
+
+/// List length of the pre-pass behind [`Globals`]: the small-scale fit's [`NEAR`] for the
+/// guarded operator, 2 (the point and its nearest other) for the bilateral spacing.
+///
+/// [`NEAR`]: super::structure::NEAR
+fn globals_k(params: &Params) -> usize {
+    if guarded_qem(params) {
         super::structure::NEAR
     } else {
         2
-    };
-    let (frame, lists, radii, index, isolated) = graph(run, k)?;
-    let exact_f = taint(run, &frame.positions, &lists, &radii, 0);
+    }
+}
+
+/// The partials behind [`Globals`] over the points `counted` selects (input indices), from a
+/// graph whose lists hold the `kg` nearest or more.
+///
+/// The result is that of the `kg`-NN graph to the bit: lists are sorted by (squared distance, tie
+/// key), a total order, so the first `kg` members of an exact longer list are the exact
+/// `kg`-NN list; and a point is isolated at `kg` exactly when fewer than `kg` of its list lie
+/// within the isolation radius (its `kg`-th nearest lies beyond it), which for a capped list is
+/// its length.
+fn partial_of(
+    params: &Params,
+    g: &Graph,
+    kg: usize,
+    counted: impl Fn(usize) -> bool,
+) -> GlobalsPartial {
+    let (frame, lists) = (&g.frame, &g.lists);
     let near = if guarded_qem(params) {
-        super::structure::near_residuals(&frame.positions, &lists)
+        super::structure::near_residuals(&frame.positions, lists)
     } else {
         Vec::new()
     };
-    let mut exact = vec![false; run.positions.len()];
     let mut part = GlobalsPartial::default();
     for (j, &i) in frame.order.iter().enumerate() {
-        let i = i as usize;
-        exact[i] = !exact_f[j];
+        let list = lists.get(j);
         // An isolated point has no spacing or noise of its own: it is never smoothed.
-        if !counted(i) || isolated[j] {
+        if !counted(i as usize) || (g.isolated[j] && list.len() < kg) {
             continue;
         }
         if params.method == Method::Bilateral
-            && let Some(&u) = lists.get(j).iter().find(|&&u| u as usize != j)
+            && let Some(&u) = list[..list.len().min(kg)]
+                .iter()
+                .find(|&&u| u as usize != j)
         {
-            part.spacing.add(index.dist2(j, u as usize).sqrt());
+            part.spacing.add(g.index.dist2(j, u as usize).sqrt());
         }
         if let Some(&r) = near.get(j) {
             part.noise.add(r);
         }
     }
     part.noise.refresh();
-    Ok((part, exact))
+    part
 }
 
 /// Number of k-NN graph hops a result depends on (see the module overview).
@@ -221,18 +251,33 @@ impl CloudResult {
 }
 
 /// The k-NN graph of a run in spatial order, capped at the isolation radius.
-type Graph = (Frame, Neighbourhoods, Vec<f64>, KnnIndex, Vec<bool>);
+struct Graph {
+    /// The run's points in spatial order.
+    frame: Frame,
+    /// Lists in frame indices, capped at the run's isolation radius.
+    lists: Neighbourhoods,
+    /// Squared radius of each list (the cap for a capped one).
+    radii: Vec<f64>,
+    /// The index the lists come from.
+    index: KnnIndex,
+    /// Which points are isolated (capped lists).
+    isolated: Vec<bool>,
+}
 
-/// Builds the k-NN graph of a run in spatial order; returns the frame, the lists (frame
-/// indices, capped at the run's isolation radius), the squared radius of each list (the cap for
-/// a capped one), the index, and which points are isolated (capped lists).
+/// Builds the k-NN graph of a run in spatial order.
 fn graph(run: &CloudRun, k: usize) -> Result<Graph, DenoiseError> {
     let frame = Frame::new(run.positions, Some(run.ties));
     let index = KnnIndex::build_with_ties(&frame.positions, run.origin, frame.ties.clone())?;
     let (lists, radii) = index.knn_all(k)?;
     let (lists, radii, isolated) =
         super::isolation::cap_lists(lists, radii, run.isolation, |i, u| index.dist2(i, u));
-    Ok((frame, lists, radii, index, isolated))
+    Ok(Graph {
+        frame,
+        lists,
+        radii,
+        index,
+        isolated,
+    })
 }
 
 /// True where the k-NN ball of a point lies strictly inside `region` (so its list is complete).
@@ -296,10 +341,29 @@ pub fn run(
     params: &Params,
     globals: &Globals,
 ) -> Result<CloudResult, DenoiseError> {
-    let mut timer = Timer::start();
+    let timer = Timer::start();
+    let g = graph(run, params.k())?;
+    run_on(run, params, globals, g, timer)
+}
+
+/// [`run`] on the run's k-NN graph `g`; `timer` started before the graph was built (its time is
+/// booked to `neighbours`).
+fn run_on(
+    run: &CloudRun,
+    params: &Params,
+    globals: &Globals,
+    g: Graph,
+    mut timer: Timer,
+) -> Result<CloudResult, DenoiseError> {
     let mut stats = Stats::default();
     let k = params.k();
-    let (frame, lists, radii, index, isolated) = graph(run, k)?;
+    let Graph {
+        frame,
+        lists,
+        radii,
+        index,
+        isolated,
+    } = g;
     let n = frame.positions.len();
     let tainted = taint(run, &frame.positions, &lists, &radii, reach(params));
     let duplicate: Vec<bool> = (0..n)
@@ -513,15 +577,30 @@ pub fn run_all(positions: &[DVec3], params: &Params) -> Result<AllResult, Denois
         isolation: super::isolation::of_cloud(&pts, &ties, origin, params.k()),
         complete: None,
     };
-    let mut timer = Timer::start();
-    let globals = if needs_globals(params) {
-        globals_partial(&r, params, |_| true)?.0.finish()
+    let timer = Timer::start();
+    let k = params.k();
+    let kg = globals_k(params);
+    let result = if !needs_globals(params) {
+        run_on(&r, params, &Globals::default(), graph(&r, k)?, timer)?
+    } else if k >= kg {
+        // One k-NN pass serves both: the pre-pass reads the first kg members of each list,
+        // which are its kg-NN list to the bit (see `partial_of`).
+        let g = graph(&r, k).map_err(|e| match e {
+            // As the separate pre-pass would fail first, on its kg.
+            DenoiseError::Neighbours(NeighboursError::TooFewPoints { points, .. })
+                if points < kg =>
+            {
+                NeighboursError::TooFewPoints { points, k: kg }.into()
+            }
+            e => e,
+        })?;
+        let globals = partial_of(params, &g, kg, |_| true).finish();
+        run_on(&r, params, &globals, g, timer)?
     } else {
-        Globals::default()
+        let globals = globals_partial(&r, params, |_| true)?.0.finish();
+        run_on(&r, params, &globals, graph(&r, k)?, timer)?
     };
     let mut stats = Stats::default();
-    timer.lap("neighbours", &mut stats);
-    let result = run(&r, params, &globals)?;
     stats.merge(&result.stats);
     result.book(&pts, |_| true, &mut stats);
     stats.points = positions.len() as u64;
@@ -545,6 +624,61 @@ mod tests {
     use std::sync::atomic::AtomicBool;
 
     use super::*;
+
+    /// A noisy grid plane, exact duplicates, a far cluster of 10 points (8 or more but fewer
+    /// than 16 within the isolation radius: isolated at k = 16, not at k = 8) and far singles.
+    fn issue9_cloud() -> Vec<DVec3> {
+        let mut pts = Vec::new();
+        for i in 0..60 {
+            for j in 0..60 {
+                let h = ((i * 7919 + j * 104_729) % 1000) as f64 / 1000.0;
+                pts.push(DVec3::new(i as f64, j as f64, 0.05 * h));
+            }
+        }
+        for i in 0..40 {
+            pts.push(pts[i * 37]);
+        }
+        for i in 0..10 {
+            pts.push(DVec3::new(5000.0 + i as f64, 3.0, 0.1 * (i % 3) as f64));
+        }
+        pts.push(DVec3::new(-9000.0, 0.0, 0.0));
+        pts.push(DVec3::new(0.0, 9000.0, 1.0));
+        pts
+    }
+
+    #[test]
+    fn issue9_globals_from_the_k_lists_equal_the_separate_pre_pass() {
+        let pts = issue9_cloud();
+        let ties: Vec<u64> = (0..pts.len() as u64).map(|i| 3 * i + 1).collect();
+        let origin = crate::denoise::origin_of(&pts);
+        let run = CloudRun {
+            positions: &pts,
+            ties: &ties,
+            origin,
+            region: None,
+            isolation: crate::denoise::isolation::of_cloud(&pts, &ties, origin, 16),
+            complete: None,
+        };
+        let guarded = Params::default();
+        let bilateral = Params {
+            method: Method::Bilateral,
+            ..Params::default()
+        };
+        for params in [guarded, bilateral] {
+            let kg = globals_k(&params);
+            let g = graph(&run, params.k()).unwrap();
+            // The far cluster is isolated in the k-list graph but not in the kg one.
+            let capped = (0..pts.len())
+                .filter(|&j| g.isolated[j] && g.lists.get(j).len() >= kg)
+                .count();
+            assert_eq!(capped, 10, "{:?}", params.method);
+            let counted = |i: usize| i % 5 != 0;
+            let separate = globals_partial(&run, &params, counted).unwrap().0;
+            let shared = partial_of(&params, &g, kg, counted);
+            assert_eq!(shared, separate, "{:?}", params.method);
+            assert!(separate.noise.count > 0 || separate.spacing.count() > 0);
+        }
+    }
 
     #[test]
     fn a_set_cancel_flag_stops_between_passes() {

@@ -118,9 +118,6 @@ pub struct LocalFit {
     pub axis: DVec3,
     /// RMS distance of the list to the fitted plane (to the line for lines).
     pub residual: f64,
-    /// RMS distance of the nearest [`NEAR`] points to their own plane: the noise at the smallest
-    /// scale, where real detail adds least.
-    pub near: f64,
 }
 
 impl LocalFit {
@@ -132,12 +129,11 @@ impl LocalFit {
             normal: DVec3::ZERO,
             axis: DVec3::ZERO,
             residual: 0.0,
-            near: 0.0,
         }
     }
 }
 
-/// Points of the small-scale fit behind [`LocalFit::near`], the point itself included.
+/// Points of the small-scale fit behind [`near_residuals`], the point itself included.
 pub const NEAR: usize = 8;
 
 /// The fit of one list from its PCA.
@@ -147,7 +143,6 @@ fn fit_of(f: Option<PcaFit>) -> LocalFit {
         normal: DVec3::ZERO,
         axis: DVec3::ZERO,
         residual: 0.0,
-        near: 0.0,
     };
     let Some(f) = f else { return none };
     if !f.has_axis() {
@@ -166,7 +161,6 @@ fn fit_of(f: Option<PcaFit>) -> LocalFit {
             normal,
             axis: f.vectors[2],
             residual: ((l0 + l1) / n).sqrt(),
-            near: 0.0,
         };
     }
     let own = if l0 <= SURFACE * (l0 + l1 + l2) && l0 <= FLAT * l1 {
@@ -179,7 +173,6 @@ fn fit_of(f: Option<PcaFit>) -> LocalFit {
         normal,
         axis: f.vectors[2],
         residual: (l0 / (n - 3.0).max(1.0)).sqrt(),
-        near: 0.0,
     }
 }
 
@@ -193,10 +186,7 @@ pub fn local_fits(pos: &[DVec3], lists: &Neighbourhoods) -> Vec<LocalFit> {
             if !v.is_finite() {
                 return fit_of(None);
             }
-            let list = lists.get(i);
-            let mut fit = fit_of(pca_fit(list.iter().map(|&u| pos[u as usize] - v)));
-            fit.near = near_residual(pos, list, i);
-            fit
+            fit_of(pca_fit(lists.get(i).iter().map(|&u| pos[u as usize] - v)))
         })
         .collect()
 }
@@ -271,9 +261,12 @@ pub fn noise_scale(fits: &[LocalFit], lists: &Neighbourhoods) -> Vec<f64> {
         .collect()
 }
 
-/// [`LocalFit::near`] of point `i` from its list (sorted by distance, itself first).
+/// The small-scale residual of point `i`: the RMS distance of its nearest [`NEAR`] points (the
+/// first [`NEAR`] of its list, which is sorted by distance and tie key) to their own plane, the
+/// noise at the smallest scale, where real detail adds least. A longer list gives the same value
+/// as a list of exactly [`NEAR`]: its first [`NEAR`] members are that list.
 #[inline]
-fn near_residual(pos: &[DVec3], list: &[u32], i: usize) -> f64 {
+pub fn near_residual(pos: &[DVec3], list: &[u32], i: usize) -> f64 {
     let v = pos[i];
     let near = &list[..list.len().min(NEAR)];
     pca_fit(near.iter().map(|&u| pos[u as usize] - v)).map_or(0.0, |f| {
@@ -281,7 +274,7 @@ fn near_residual(pos: &[DVec3], list: &[u32], i: usize) -> f64 {
     })
 }
 
-/// [`LocalFit::near`] of every finite point (0 for the others) from lists of at least [`NEAR`].
+/// [`near_residual`] of every finite point (0 for the others) from lists of at least [`NEAR`].
 pub fn near_residuals(pos: &[DVec3], lists: &Neighbourhoods) -> Vec<f64> {
     (0..pos.len())
         .into_par_iter()
