@@ -363,15 +363,20 @@ fn issue16_cluttered_cloud_tiles_within_a_tiny_budget() {
     assert!(std::fs::read(&out).unwrap() == want, "tiled output differs");
     let tiles = r["tiles"].as_u64().unwrap();
     assert!(tiles >= 3, "{tiles} tiles");
-    // Every first load fits the budget; a tile whose halo grows may exceed it (the open part of
-    // issue 16, docs/DECISIONS.md): measured 83 MiB for this 48 MiB run, 4× the budget before.
-    // The bound asserted: twice the budget plus 24 MiB (binary, stacks, arenas, sample, grid).
+    // Every kernel run (first loads and every group of a grown halo) is held to the budget: the
+    // peak is the budget plus a stated constant of 24 MiB (binary, thread stacks, arenas, the
+    // sample and the grid). Measured 54 MiB for this 48 MiB run (83 MiB before the growth was
+    // bounded).
     let peak = r["peak_rss_bytes"].as_u64().unwrap();
     assert!(
-        peak <= 2 * budget + (24 << 20),
+        peak <= budget + (24 << 20),
         "peak RSS {} MiB over a {} MiB budget",
         peak >> 20,
         budget >> 20
+    );
+    assert!(
+        r["halo_growths"].as_u64().unwrap() > 0,
+        "no halo growth: the bound is not exercised"
     );
     let growths = r["halo_growths"].as_u64().unwrap();
     assert!(growths <= tiles, "{growths} halo growths on {tiles} tiles");

@@ -74,6 +74,52 @@ impl Occupancy {
         [c.x as i64, c.y as i64, c.z as i64].map(|v| v >> self.level.min(63))
     }
 
+    /// The key of the cell holding `p`.
+    pub fn cell_of(&self, p: DVec3) -> [i64; 3] {
+        self.key(p)
+    }
+
+    /// The box of the cell `key` (closed; a point on a face may belong to the next cell).
+    pub fn cell_box(&self, key: [i64; 3]) -> crate::points::Aabb {
+        let cell = self.cell();
+        let min = self.origin + DVec3::new(key[0] as f64, key[1] as f64, key[2] as f64) * cell;
+        // A margin keeps the box a superset of the points keyed to the cell under rounding.
+        let pad = DVec3::splat(cell * 1e-9 + (min.abs().max_element() + cell) * 1e-15);
+        crate::points::Aabb {
+            min: min - pad,
+            max: min + DVec3::splat(cell) + pad,
+        }
+    }
+
+    /// Points counted in cell `key`.
+    pub fn count(&self, key: [i64; 3]) -> u64 {
+        self.counts.get(&key).copied().unwrap_or(0)
+    }
+
+    /// The keys of the cells the bounding box of the ball (`p`, √`r2`) touches, as
+    /// [`Occupancy::complete`] visits them; `None` for a ball it would not prove.
+    pub fn ball_cells(&self, p: DVec3, r2: f64) -> Option<Vec<[i64; 3]>> {
+        let r = r2.max(0.0).sqrt() * (1.0 + 1e-9) + (p.abs().max_element() + 1.0) * 1e-15;
+        if !r.is_finite() {
+            return None;
+        }
+        let lo = self.key(p - DVec3::splat(r));
+        let hi = self.key(p + DVec3::splat(r));
+        let span = |a: usize| hi[a].saturating_sub(lo[a]).saturating_add(1);
+        if span(0).saturating_mul(span(1)).saturating_mul(span(2)) > MAX_VISITS {
+            return None;
+        }
+        let mut out = Vec::new();
+        for x in lo[0]..=hi[0] {
+            for y in lo[1]..=hi[1] {
+                for z in lo[2]..=hi[2] {
+                    out.push([x, y, z]);
+                }
+            }
+        }
+        Some(out)
+    }
+
     /// Counts `p` (a processed position).
     pub fn add(&mut self, p: DVec3) {
         *self.counts.entry(self.key(p)).or_insert(0) += 1;
@@ -118,9 +164,30 @@ impl Occupancy {
         // keeps the bound an upper one under rounding.
         let lo = (region.min - self.origin) / cell - DVec3::splat(1e-9);
         let hi = (region.max - self.origin) / cell + DVec3::splat(1e-9);
+        let touches =
+            |k: &[i64; 3]| (0..3).all(|a| (k[a] as f64) + 1.0 >= lo[a] && (k[a] as f64) <= hi[a]);
+        // A small region visits its cells; a large one (or one with infinite faces) the map.
+        let first = (lo - DVec3::ONE).ceil();
+        let last = hi.floor();
+        let span = (last - first + DVec3::ONE).max(DVec3::ZERO);
+        let visits = span.x * span.y * span.z;
+        if visits.is_finite() && visits <= self.counts.len() as f64 {
+            let mut sum = 0;
+            for x in first.x as i64..=last.x as i64 {
+                for y in first.y as i64..=last.y as i64 {
+                    for z in first.z as i64..=last.z as i64 {
+                        let k = [x, y, z];
+                        if touches(&k) {
+                            sum += self.counts.get(&k).copied().unwrap_or(0);
+                        }
+                    }
+                }
+            }
+            return sum;
+        }
         self.counts
             .iter()
-            .filter(|(k, _)| (0..3).all(|a| (k[a] as f64) + 1.0 >= lo[a] && (k[a] as f64) <= hi[a]))
+            .filter(|(k, _)| touches(k))
             .map(|(_, n)| n)
             .sum()
     }
@@ -234,6 +301,41 @@ mod tests {
             max: DVec3::splat(f64::INFINITY),
         };
         assert_eq!(g.points_in(&all), 1000);
+    }
+
+    #[test]
+    fn issue16_points_in_visits_small_regions_to_the_same_count_as_the_map() {
+        let mut g = Occupancy::new(0.5, DVec3::splat(-1.0));
+        let mut x = 0x9e37_79b9_7f4a_7c15u64;
+        let mut f = move || {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            (x >> 11) as f64 / (1u64 << 53) as f64
+        };
+        for _ in 0..20_000 {
+            g.add(DVec3::new(f() * 40.0, f() * 40.0, f() * 2.0));
+        }
+        for _ in 0..200 {
+            let c = DVec3::new(f() * 44.0 - 2.0, f() * 44.0 - 2.0, f() * 3.0 - 0.5);
+            let h = DVec3::new(f() * 3.0, f() * 3.0, f() * 3.0);
+            let region = crate::points::Aabb {
+                min: c - h,
+                max: c + h,
+            };
+            let cell = g.cell();
+            let lo = (region.min - g.origin) / cell - DVec3::splat(1e-9);
+            let hi = (region.max - g.origin) / cell + DVec3::splat(1e-9);
+            let by_map: u64 = g
+                .counts
+                .iter()
+                .filter(|(k, _)| {
+                    (0..3).all(|a| (k[a] as f64) + 1.0 >= lo[a] && (k[a] as f64) <= hi[a])
+                })
+                .map(|(_, n)| n)
+                .sum();
+            assert_eq!(g.points_in(&region), by_map, "{region:?}");
+        }
     }
 
     #[test]

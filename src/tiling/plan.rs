@@ -140,6 +140,21 @@ impl Plan {
         r
     }
 
+    /// `bx` (a box holding every point of the cloud inside it) with faces at or beyond the cloud's
+    /// bounds pushed to infinity, as [`Plan::region`].
+    pub fn region_of(&self, bx: &Aabb) -> Aabb {
+        let mut r = *bx;
+        for a in 0..3 {
+            if bx.min[a] <= self.bounds.min[a] {
+                r.min[a] = f64::NEG_INFINITY;
+            }
+            if bx.max[a] >= self.bounds.max[a] {
+                r.max[a] = f64::INFINITY;
+            }
+        }
+        r
+    }
+
     /// True when `p` lies within `halo` (L∞) of tile `t`'s box.
     pub fn in_region(&self, t: usize, halo: f64, p: DVec3) -> bool {
         let core = self.tiles[t].core;

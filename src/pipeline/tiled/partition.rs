@@ -33,7 +33,6 @@ impl Partition {
         TileBudget {
             occupancy: self.occupancy.as_ref(),
             max_points: Some(limits.max_points),
-            max_staged: Some(limits.max_staged),
         }
     }
 }

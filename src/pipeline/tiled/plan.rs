@@ -16,10 +16,9 @@ use crate::tiling::plan::{Plan, Planner, SAMPLE};
 pub struct Limits {
     /// Points a tile targets (owned).
     pub target: u64,
-    /// Most points (owned and halo) a tile's first load may hold.
+    /// Most points (owned and halo) one kernel run may hold: a tile's first load, and each group
+    /// of a grown halo ([`crate::tiling::growth`]).
     pub max_points: u64,
-    /// Most points a halo load may read before they are counted.
-    pub max_staged: u64,
 }
 
 impl Limits {
@@ -37,16 +36,7 @@ impl Limits {
         // tile, the occupancy grid, the sample and I/O buffers); the tile target is 40 %, so a
         // uniform cloud's halo fits.
         let max_points = budget / 5 * 3 / per_point.max(1);
-        // A halo load may read as many points as 80 % of the budget holds at 80 bytes (a read
-        // point and its position and index copies) before they are counted. A grown halo is
-        // otherwise not refused (docs/DECISIONS.md, issue 16): refusing it failed real airborne
-        // scans at 64–128 MiB.
-        let max_staged = budget / 5 * 4 / 80;
-        Limits {
-            target,
-            max_points,
-            max_staged,
-        }
+        Limits { target, max_points }
     }
 }
 
