@@ -42,6 +42,7 @@ mod normals;
 mod options;
 mod progress;
 mod report;
+pub mod scaleout;
 mod spec;
 mod stream;
 pub mod tiled;
