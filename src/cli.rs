@@ -48,6 +48,128 @@ pub enum Command {
     Spectrum(SpectrumArgs),
     /// Run the HTTP job service (uploads, asynchronous jobs, synchronous denoise).
     Serve(ServeArgs),
+    /// Scale-out: plan a tiled job into a work directory and print each phase's task count.
+    Plan(Box<PlanArgs>),
+    /// Scale-out: run one task of one phase of a planned job (the index from the flags or the
+    /// engine: SLURM, Kubernetes Indexed Job, AWS Batch).
+    Worker(WorkerArgs),
+    /// Scale-out: write a planned job's output (running the stitch if it has not run).
+    Finish(FinishArgs),
+    /// Scale-out: each phase's progress, from the committed files of the work directory.
+    Status(StatusArgs),
+}
+
+/// Flags of `qemd plan`: the input and the denoising flags of `qemd denoise`, frozen in the work
+/// directory so workers need none.
+#[derive(Debug, Args)]
+pub struct PlanArgs {
+    /// Input file (a file every task can read; not a stream).
+    pub input: PathBuf,
+    /// The work directory: a path or file:///abs/path, on a file system every task can reach.
+    #[arg(long)]
+    pub work: String,
+    /// Output format of the stitch (default: the input's); `qemd finish` may still write another.
+    #[arg(long, visible_alias = "output-format", ignore_case = true, value_parser = format_parser())]
+    pub format: Option<Format>,
+    /// Input format, overriding the extension and the content.
+    #[arg(long, ignore_case = true, value_parser = format_parser())]
+    pub input_format: Option<Format>,
+    /// Layout of raw .bin records (as `qemd denoise --bin-fields`).
+    #[arg(long, value_name = "FIELDS|N", value_parser = BinLayout::parse)]
+    pub bin_fields: Option<BinLayout>,
+    /// The denoising parameters (as `qemd denoise`).
+    #[command(flatten)]
+    pub spec: SpecOverlay,
+    /// Worker threads of the plan pass (default: all cores).
+    #[arg(long)]
+    pub threads: Option<usize>,
+    /// Memory budget of each task; sizes the tiles (default as `qemd denoise`).
+    #[arg(long)]
+    pub memory_budget: Option<bytesize::ByteSize>,
+    /// Tiles of about this many points (default: sized to the memory budget).
+    #[arg(long)]
+    pub tile_points: Option<u64>,
+    /// Configuration file (overrides config/default.toml; QEMD_* variables override it).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Print the task counts as JSON.
+    #[arg(long)]
+    pub json: bool,
+    /// Print nothing but errors (and the JSON, with --json).
+    #[arg(short, long)]
+    pub quiet: bool,
+}
+
+impl PlanArgs {
+    /// The input and output formats these flags select (`None`: from the extension or content,
+    /// and the input's for the output).
+    pub fn formats(&self) -> (Option<Format>, Option<Format>) {
+        let input = with_layout(self.input_format, &self.input, self.bin_fields);
+        let output = match self.format {
+            Some(f) => with_layout(Some(f), Path::new(""), self.bin_fields),
+            None => None,
+        };
+        (input, output)
+    }
+}
+
+/// Flags of `qemd worker`.
+#[derive(Debug, Args)]
+pub struct WorkerArgs {
+    /// The work directory of a planned job.
+    #[arg(long)]
+    pub work: String,
+    /// The phase.
+    #[arg(long, value_enum)]
+    pub phase: crate::pipeline::scaleout::Phase,
+    /// This task's index, 0-based (default: SLURM_ARRAY_TASK_ID, JOB_COMPLETION_INDEX or
+    /// AWS_BATCH_JOB_ARRAY_INDEX; else 0).
+    #[arg(long)]
+    pub index: Option<u64>,
+    /// Tasks sharing the phase (default: SLURM_ARRAY_TASK_COUNT, else the phase's task count
+    /// from the plan; 1 without an index).
+    #[arg(long)]
+    pub of: Option<u64>,
+    /// Worker threads (default: all cores); the output is identical for any value.
+    #[arg(long)]
+    pub threads: Option<usize>,
+    /// Print what the task did as JSON.
+    #[arg(long)]
+    pub json: bool,
+    /// Print nothing but errors.
+    #[arg(short, long)]
+    pub quiet: bool,
+}
+
+/// Flags of `qemd finish`.
+#[derive(Debug, Args)]
+pub struct FinishArgs {
+    /// The work directory of a planned job.
+    #[arg(long)]
+    pub work: String,
+    /// Output file, or - for standard output.
+    #[arg(short, long)]
+    pub output: PathBuf,
+    /// Output format, overriding the extension.
+    #[arg(long, visible_alias = "output-format", ignore_case = true, value_parser = format_parser())]
+    pub format: Option<Format>,
+    /// Worker threads (default: all cores).
+    #[arg(long)]
+    pub threads: Option<usize>,
+    /// Print nothing but errors.
+    #[arg(short, long)]
+    pub quiet: bool,
+}
+
+/// Flags of `qemd status`.
+#[derive(Debug, Args)]
+pub struct StatusArgs {
+    /// The work directory of a planned job.
+    #[arg(long)]
+    pub work: String,
+    /// Print JSON.
+    #[arg(long)]
+    pub json: bool,
 }
 
 /// Flags of `qemd serve`; everything else comes from the configuration.

@@ -13,8 +13,9 @@ use clap::Parser;
 use qem_denoise::api::ApiSettings;
 use qem_denoise::api::server::{ServeOptions, Server, shutdown_signal};
 use qem_denoise::cli::{
-    Cli, Command, DemoArgs, DenoiseArgs, EvalArgs, HarmArgs, NoiseArgs, NoiseUnit, RenderArgs,
-    ReportArgs, ServeArgs, SpectrumArgs, SynthArgs, TableArgs,
+    Cli, Command, DemoArgs, DenoiseArgs, EvalArgs, FinishArgs, HarmArgs, NoiseArgs, NoiseUnit,
+    PlanArgs, RenderArgs, ReportArgs, ServeArgs, SpectrumArgs, StatusArgs, SynthArgs, TableArgs,
+    WorkerArgs,
 };
 use qem_denoise::config::{Config, LogFormat};
 use qem_denoise::denoise::{self, Params};
@@ -56,7 +57,184 @@ fn run(cli: Cli) -> Result<()> {
         Command::Report(a) => report(a),
         Command::Spectrum(a) => spectrum(a),
         Command::Serve(a) => serve(a),
+        Command::Plan(a) => plan(*a),
+        Command::Worker(a) => worker(a),
+        Command::Finish(a) => finish(a),
+        Command::Status(a) => status(a),
     }
+}
+
+/// The progress display of a command: none when quiet, a bar on a terminal, else log lines.
+fn progress_for(quiet: bool) -> Arc<dyn Progress> {
+    if quiet {
+        Arc::new(NoProgress)
+    } else if std::io::stderr().is_terminal() {
+        Arc::new(BarProgress::default())
+    } else {
+        Arc::new(LogProgress::new(Duration::from_secs(10)))
+    }
+}
+
+/// A cancel flag set by Ctrl-C and SIGTERM (what `scancel` and a pod's deletion send first).
+fn cancel_flag() -> Result<Arc<AtomicBool>> {
+    let cancel = Arc::new(AtomicBool::new(false));
+    let c = cancel.clone();
+    ctrlc::set_handler(move || c.store(true, Ordering::Relaxed))
+        .context("cannot install the Ctrl-C handler")?;
+    Ok(cancel)
+}
+
+fn plan(a: PlanArgs) -> Result<()> {
+    use qem_denoise::pipeline::scaleout::{self, Phase, PlanRequest, WorkUrl};
+    init_threads(a.threads)?;
+    let config = Config::load(a.config.as_deref())?;
+    let work = WorkUrl::parse(&a.work)?;
+    let (input_format, output_format) = a.formats();
+    let req = PlanRequest {
+        input: a.input.clone(),
+        input_format,
+        output_format,
+        spec: a.spec.resolve(config.outlier_alpha)?,
+        memory_budget: a.memory_budget.unwrap_or(config.memory_budget).as_u64(),
+        tile_points: a.tile_points,
+    };
+    let progress = progress_for(a.quiet);
+    let planned = scaleout::plan(&work, &req, progress.clone(), cancel_flag()?);
+    progress.finish();
+    let planned = planned?;
+    let tasks = planned.job.tasks();
+    if a.json {
+        let phases: serde_json::Map<String, serde_json::Value> = Phase::ALL
+            .iter()
+            .zip(tasks)
+            .map(|(p, n)| (p.name().to_string(), n.into()))
+            .collect();
+        let out = serde_json::json!({
+            "work": work.to_string(),
+            "input": planned.job.input,
+            "points": planned.job.plan.points,
+            "tiles": planned.job.plan.tiles.len(),
+            "existing": planned.existing,
+            "tasks": phases,
+        });
+        println!("{}", serde_json::to_string_pretty(&out)?);
+    } else if !a.quiet {
+        if planned.existing {
+            eprintln!("qemd: {work} already holds this job; nothing changed");
+        }
+        println!(
+            "{} points, {} tiles in {work}",
+            planned.job.plan.points,
+            planned.job.plan.tiles.len()
+        );
+        for (p, n) in Phase::ALL.iter().zip(tasks) {
+            println!("{:<10} {n} tasks", p.name());
+        }
+    }
+    Ok(())
+}
+
+fn worker(a: WorkerArgs) -> Result<()> {
+    use qem_denoise::pipeline::scaleout::{self, Hooks, WorkUrl};
+    init_threads(a.threads)?;
+    let work = WorkUrl::parse(&a.work)?;
+    let hooks = Hooks {
+        progress: progress_for(a.quiet || a.json),
+        cancel: cancel_flag()?,
+    };
+    let r = scaleout::run_task(
+        &work,
+        a.phase,
+        (a.index, a.of),
+        |k| std::env::var(k).ok(),
+        &hooks,
+    );
+    hooks.progress.finish();
+    let r = r?;
+    if a.json {
+        println!("{}", serde_json::to_string(&r)?);
+    } else if !a.quiet {
+        eprintln!(
+            "qemd: {} task {} of {} ({}): {} assigned, {} done, {} already committed, {:.3} s",
+            r.phase,
+            r.task.index,
+            r.task.of,
+            r.task.source,
+            r.assigned,
+            r.done,
+            r.skipped,
+            r.wall_s
+        );
+    }
+    Ok(())
+}
+
+fn finish(a: FinishArgs) -> Result<()> {
+    use qem_denoise::pipeline::scaleout::{self, Hooks, WorkUrl};
+    init_threads(a.threads)?;
+    let work = WorkUrl::parse(&a.work)?;
+    let hooks = Hooks {
+        progress: progress_for(a.quiet),
+        cancel: cancel_flag()?,
+    };
+    let f = scaleout::finish(&work, &a.output, a.format, &hooks);
+    hooks.progress.finish();
+    let f = f?;
+    if !a.quiet {
+        eprintln!(
+            "qemd: {work} → {} ({}): {} points in, {} out, {} outliers, {} tiles",
+            f.output.display(),
+            f.delivered,
+            f.points_in,
+            f.written,
+            f.found,
+            f.tiles
+        );
+        if f.normals == pipeline::NormalsAction::Cleared {
+            eprintln!(
+                "qemd: warning: the input's stored normals would be stale after denoising and were cleared (NaN); recompute them downstream"
+            );
+        }
+        if f.dropped > 0 {
+            eprintln!(
+                "qemd: warning: {} points with NaN, infinite or out-of-range (beyond ±1e12) coordinates were dropped",
+                f.dropped
+            );
+        }
+    }
+    Ok(())
+}
+
+fn status(a: StatusArgs) -> Result<()> {
+    use qem_denoise::pipeline::scaleout::{self, WorkUrl};
+    let work = WorkUrl::parse(&a.work)?;
+    let s = scaleout::status(&work)?;
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&s)?);
+        return Ok(());
+    }
+    println!("{}: {} points, {} tiles", s.work, s.points, s.tiles);
+    for p in &s.phases {
+        let state = if p.units == 0 {
+            "not needed".to_string()
+        } else if p.complete() {
+            "done".to_string()
+        } else {
+            "pending".to_string()
+        };
+        println!(
+            "{:<10} {:>6} tasks {:>6}/{:<6} committed  {state}",
+            p.phase.name(),
+            p.tasks,
+            p.committed,
+            p.units
+        );
+    }
+    match s.next {
+        Some(p) => println!("next: {p}"),
+        None => println!("next: qemd finish"),
+    }
+    Ok(())
 }
 
 fn init_logging(config: &Config) -> Result<()> {

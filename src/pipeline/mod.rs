@@ -43,6 +43,7 @@ mod normals;
 mod options;
 mod progress;
 mod report;
+pub mod scaleout;
 mod spec;
 mod stream;
 pub mod tiled;

@@ -1,0 +1,58 @@
+//! The exclusive lock a single-task phase holds on its work directory while it runs, so that a
+//! duplicated task (an engine's retry racing the original) waits and then finds the work
+//! committed instead of writing the same files at once. The operating system releases it when
+//! the holder exits, however it exits (a SIGKILL included).
+
+use std::fs::File;
+use std::path::Path;
+
+use super::Phase;
+use super::layout::lock_path;
+use crate::io::IoError;
+
+/// A held lock; released on drop.
+#[derive(Debug)]
+pub struct PhaseLock {
+    file: File,
+}
+
+impl PhaseLock {
+    /// Waits for and takes `phase`'s lock in `dir`.
+    ///
+    /// # Errors
+    /// The lock file cannot be created or locked (a file system without locks).
+    pub fn acquire(dir: &Path, phase: Phase) -> Result<PhaseLock, IoError> {
+        let path = lock_path(dir, phase);
+        let file = File::options()
+            .create(true)
+            .truncate(false)
+            .write(true)
+            .open(&path)
+            .map_err(|e| IoError::io(&path, e))?;
+        file.lock().map_err(|e| IoError::io(&path, e))?;
+        Ok(PhaseLock { file })
+    }
+}
+
+impl Drop for PhaseLock {
+    fn drop(&mut self) {
+        let _ = self.file.unlock();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_second_holder_waits_for_the_first() {
+        let d = tempfile::tempdir().unwrap();
+        let first = PhaseLock::acquire(d.path(), Phase::Partition).unwrap();
+        let other = File::open(lock_path(d.path(), Phase::Partition)).unwrap();
+        assert!(other.try_lock().is_err(), "held");
+        // Another phase's lock is independent.
+        let _stitch = PhaseLock::acquire(d.path(), Phase::Stitch).unwrap();
+        drop(first);
+        assert!(other.try_lock().is_ok(), "released on drop");
+    }
+}

@@ -1,0 +1,150 @@
+//! Scale-out: a tiled run as **indexed tasks** that any engine handing out an index can run (a
+//! SLURM array job, a Kubernetes Indexed Job, an AWS Batch array job), with the same bytes as
+//! `qemd denoise` on one node.
+//!
+//! # Brief overview
+//!
+//! A job is a **work directory** ([`WorkUrl`]; a local path or `file://` URL for now). Planning
+//! ([`plan::plan`]) freezes everything a task needs in it ([`frozen::FrozenJob`]: the input, the
+//! formats, the resolved spec, the memory budget, the tile size and the plan), so workers take no
+//! parameters. Then the phases of the tiled driver ([`crate::pipeline::tiled`]) run as tasks:
+//!
+//! ```text
+//!  phase       tasks          task I of N does                     commits
+//!  partition   1              the spill pass (index 0)             tile_<t>.pts, spill.done
+//!  globals     tiles or 0     tile t's partial sums, t ≡ I mod N   globals_<t>.json
+//!  tiles       tiles          tile t, t ≡ I mod N                  tile_<t>.res, tile_<t>.json
+//!  stitch      1              the output, in the work dir (I = 0)  output.<ext>, stitch.json
+//!  finish      (a command)    stitch if needed, deliver to -o      the output file
+//! ```
+//!
+//! Each task is **idempotent**: it skips what is committed and commits each result atomically
+//! (temp + rename), so a duplicated, retried or killed task changes nothing. The single-task
+//! phases hold an exclusive lock on the work directory's `<phase>.lock`, so a duplicate waits and
+//! then finds the work done. A task's index comes from its flags or its engine ([`index`]).
+//! Progress is read from the committed files alone ([`status`]).
+//!
+//! Partition and stitch are one task each for now (the split by record range is a later step).
+
+pub mod finish;
+pub mod frozen;
+pub mod index;
+pub mod layout;
+pub mod lock;
+pub mod plan;
+pub mod status;
+pub mod url;
+pub mod worker;
+
+use std::path::PathBuf;
+
+use thiserror::Error;
+
+use super::PipelineError;
+use crate::io::IoError;
+
+pub use finish::{Finished, finish};
+pub use frozen::FrozenJob;
+pub use index::{TaskIndex, resolve_index};
+pub use plan::{PlanRequest, Planned, plan};
+pub use status::{PhaseStatus, Status, status};
+pub use url::WorkUrl;
+pub use worker::{Hooks, TaskReport, run_task};
+
+/// A phase that runs as tasks.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
+#[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
+#[serde(rename_all = "lowercase")]
+pub enum Phase {
+    /// The spill pass over the input.
+    Partition,
+    /// The global scalars' partial sums per tile (methods that need them).
+    Globals,
+    /// The operator on each tile.
+    Tiles,
+    /// The output, from the input and the tiles' results.
+    Stitch,
+}
+
+impl Phase {
+    /// The phases in the order they run.
+    pub const ALL: [Phase; 4] = [
+        Phase::Partition,
+        Phase::Globals,
+        Phase::Tiles,
+        Phase::Stitch,
+    ];
+
+    /// The lower-case name (as on the command line).
+    pub fn name(self) -> &'static str {
+        match self {
+            Phase::Partition => "partition",
+            Phase::Globals => "globals",
+            Phase::Tiles => "tiles",
+            Phase::Stitch => "stitch",
+        }
+    }
+}
+
+impl std::fmt::Display for Phase {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+/// Errors of the scale-out commands.
+#[derive(Debug, Error)]
+#[non_exhaustive]
+pub enum ScaleoutError {
+    /// A phase of the run failed.
+    #[error(transparent)]
+    Pipeline(#[from] PipelineError),
+    /// A file of the work directory could not be read or written.
+    #[error(transparent)]
+    Io(#[from] IoError),
+    /// The work directory's URL cannot be used.
+    #[error("{url}: {detail}")]
+    Url {
+        /// The URL as given.
+        url: String,
+        /// What is wrong.
+        detail: String,
+    },
+    /// The work directory holds no plan, another job, or a plan of another version.
+    #[error("{path}: {detail}", path = .path.display())]
+    WorkDir {
+        /// The work directory.
+        path: PathBuf,
+        /// What is wrong.
+        detail: String,
+    },
+    /// The input is not the file the job was planned on.
+    #[error("{path}: {detail}", path = .path.display())]
+    InputChanged {
+        /// The input.
+        path: PathBuf,
+        /// What changed.
+        detail: String,
+    },
+    /// A phase ran before the one it needs was complete.
+    #[error("{path}: the {phase} phase needs {detail}", path = .path.display())]
+    NotReady {
+        /// The work directory.
+        path: PathBuf,
+        /// The phase asked for.
+        phase: Phase,
+        /// What is missing.
+        detail: String,
+    },
+    /// A task's index cannot be told or is out of range.
+    #[error("task index: {0}")]
+    Index(String),
+    /// The request cannot run as scale-out tasks.
+    #[error("{path}: {detail}", path = .path.display())]
+    Unsupported {
+        /// The input.
+        path: PathBuf,
+        /// Why.
+        detail: String,
+    },
+}

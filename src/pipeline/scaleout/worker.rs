@@ -1,0 +1,368 @@
+//! One task of one phase (`qemd worker`), built on the tiled driver's phase functions
+//! ([`crate::pipeline::tiled`]): it reads the frozen job, checks that the phases before it are
+//! committed, does its share — tile `t` belongs to task `t mod N` — skipping what is committed,
+//! and commits each result atomically.
+
+use std::path::Path;
+use std::sync::Arc;
+use std::sync::atomic::AtomicBool;
+use std::time::Instant;
+
+use serde::{Deserialize, Serialize};
+
+use super::frozen::FrozenJob;
+use super::index::TaskIndex;
+use super::layout::{STITCH_DONE, commit_json, globals_partial_path, load_json};
+use super::lock::PhaseLock;
+use super::url::WorkUrl;
+use super::{Phase, ScaleoutError, resolve_index};
+use crate::denoise::Displacements;
+use crate::denoise::cloud::{self, Globals, GlobalsPartial};
+use crate::geometry::ExactSum;
+use crate::io;
+use crate::pipeline::NormalsAction;
+use crate::pipeline::tiled::partition::{self, Partition};
+use crate::pipeline::tiled::{globals, outliers, stitch, tiles};
+use crate::pipeline::{Job, PipelineError, Progress, RunOptions};
+use crate::tiling::workdir::WorkDir;
+
+/// What a task did.
+#[derive(Debug, Clone, Serialize)]
+pub struct TaskReport {
+    /// The phase.
+    pub phase: Phase,
+    /// Which task.
+    pub task: TaskIndex,
+    /// Units (tiles, or the one partition or stitch) that are this task's.
+    pub assigned: u64,
+    /// Units it did.
+    pub done: u64,
+    /// Units it found committed and skipped.
+    pub skipped: u64,
+    /// Wall time in seconds.
+    pub wall_s: f64,
+}
+
+/// A tile's partial sums of the global scalars as stored (`globals_<t>.json`).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+struct StoredPartial {
+    spacing: ExactSum,
+    noise: Displacements,
+}
+
+/// The committed stitch (`stitch.json`): what it wrote.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct StitchDone {
+    /// Points written.
+    pub written: u64,
+    /// Points flagged or removed as outliers.
+    pub found: u64,
+    /// Unprocessed points dropped.
+    pub dropped: u64,
+    /// What happened to stored normals.
+    pub normals: NormalsAction,
+    /// Bytes of the output file.
+    pub bytes: u64,
+}
+
+/// How a task reports progress and is cancelled.
+#[derive(Clone)]
+pub struct Hooks {
+    /// Progress updates.
+    pub progress: Arc<dyn Progress>,
+    /// Set to stop at the next batch or tile.
+    pub cancel: Arc<AtomicBool>,
+}
+
+impl Default for Hooks {
+    fn default() -> Hooks {
+        let o = RunOptions::default();
+        Hooks {
+            progress: o.progress,
+            cancel: o.cancel,
+        }
+    }
+}
+
+/// Tiles of `tiles` that are task `i` of `n`'s: `t ≡ i (mod n)`.
+pub fn assigned(i: u64, n: u64, tiles: usize) -> impl Iterator<Item = usize> {
+    (i as usize..tiles).step_by(n.max(1) as usize)
+}
+
+/// A loaded job and the handles every phase uses.
+struct Ctx {
+    frozen: FrozenJob,
+    job: Job,
+    opts: RunOptions,
+    work: WorkDir,
+}
+
+impl Ctx {
+    fn new(dir: &Path, hooks: &Hooks) -> Result<Ctx, ScaleoutError> {
+        let frozen = FrozenJob::load(dir)?;
+        let job = frozen.job(dir);
+        let opts = RunOptions {
+            progress: hooks.progress.clone(),
+            cancel: hooks.cancel.clone(),
+            ..frozen.options(dir)
+        };
+        let work = WorkDir::persistent(dir).map_err(|e| io::IoError::io(dir, e))?;
+        Ok(Ctx {
+            frozen,
+            job,
+            opts,
+            work,
+        })
+    }
+
+    fn not_ready(&self, phase: Phase, detail: String) -> ScaleoutError {
+        ScaleoutError::NotReady {
+            path: self.work.path().to_path_buf(),
+            phase,
+            detail,
+        }
+    }
+
+    /// The committed partition, or [`ScaleoutError::NotReady`].
+    fn partition(&self, phase: Phase) -> Result<Partition, ScaleoutError> {
+        let plan = &self.frozen.plan;
+        if self.work.committed_partition(plan).is_none() {
+            return Err(self.not_ready(phase, "the partition phase committed".into()));
+        }
+        // Committed: this only reads it back and checks the tiles against the budget.
+        let limits = self.frozen.limits(self.work.path());
+        Ok(partition::partition(
+            &self.job, &self.opts, plan, &limits, &self.work,
+        )?)
+    }
+
+    /// The global scalars: zero when not needed, the committed ones, or reduced from every
+    /// tile's committed partial sums (then committed; any task may, all write the same bytes).
+    fn globals(&self, phase: Phase) -> Result<Globals, ScaleoutError> {
+        if !cloud::needs_globals(&self.job.spec.params) {
+            return Ok(Globals::default());
+        }
+        if let Some(g) = self.work.committed_globals() {
+            return Ok(g);
+        }
+        let tiles = self.frozen.plan.tiles.len();
+        let mut sum = GlobalsPartial::default();
+        let mut missing = Vec::new();
+        for t in 0..tiles {
+            match load_json::<StoredPartial>(&globals_partial_path(self.work.path(), t)) {
+                Some(p) => sum.merge(&GlobalsPartial {
+                    spacing: p.spacing,
+                    noise: p.noise,
+                }),
+                None => missing.push(t),
+            }
+        }
+        if !missing.is_empty() {
+            return Err(self.not_ready(
+                phase,
+                format!(
+                    "the globals phase committed ({} of {tiles} tiles missing, first {})",
+                    missing.len(),
+                    missing[0]
+                ),
+            ));
+        }
+        let g = sum.finish();
+        self.work.commit_globals(&g)?;
+        Ok(g)
+    }
+
+    /// The exact sums of the outlier statistic over every committed tile, or
+    /// [`ScaleoutError::NotReady`].
+    fn knn_sums(&self, phase: Phase) -> Result<(ExactSum, ExactSum), ScaleoutError> {
+        let tiles = self.frozen.plan.tiles.len();
+        let mut sums = (ExactSum::default(), ExactSum::default());
+        let mut missing = Vec::new();
+        for t in 0..tiles {
+            match self.work.committed_tile(t) {
+                Some(o) => {
+                    sums.0.merge(&o.knn_mean.0);
+                    sums.1.merge(&o.knn_mean.1);
+                }
+                None => missing.push(t),
+            }
+        }
+        if !missing.is_empty() {
+            return Err(self.not_ready(
+                phase,
+                format!(
+                    "the tiles phase committed ({} of {tiles} tiles missing, first {})",
+                    missing.len(),
+                    missing[0]
+                ),
+            ));
+        }
+        Ok(sums)
+    }
+}
+
+/// The committed stitch of the job in `dir`: `stitch.json` and an output of its length.
+pub fn committed_stitch(dir: &Path, frozen: &FrozenJob) -> Option<StitchDone> {
+    let done: StitchDone = load_json(&dir.join(STITCH_DONE))?;
+    let out = frozen.job(dir).output;
+    let len = std::fs::metadata(&out).ok()?.len();
+    (len == done.bytes).then_some(done)
+}
+
+/// Stitches the job of `dir` into `job.output` (its format `job.output_format`): the threshold
+/// from every tile's sums, then [`stitch::stitch`]. The caller holds the stitch lock.
+pub(super) fn stitch_into(
+    dir: &Path,
+    job: &Job,
+    hooks: &Hooks,
+) -> Result<stitch::Stitched, ScaleoutError> {
+    let ctx = Ctx::new(dir, hooks)?;
+    ctx.frozen.check_input()?;
+    let knn = ctx.knn_sums(Phase::Stitch)?;
+    let plan = &ctx.frozen.plan;
+    let threshold = outliers::threshold(job, plan, &ctx.work, &knn)?;
+    let info = io::open(&job.input, job.input_format)
+        .map_err(PipelineError::from)?
+        .info()
+        .clone();
+    Ok(stitch::stitch(
+        job, &ctx.opts, &info, plan, &ctx.work, &threshold,
+    )?)
+}
+
+/// Runs task `index` of `of` (else from the environment `env`, see [`super::index`]) of `phase`
+/// of the job in `work`.
+///
+/// # Errors
+/// A work directory without a plan, a phase before this one not committed, the phase's errors,
+/// cancellation.
+pub fn run_task(
+    work: &WorkUrl,
+    phase: Phase,
+    (index, of): (Option<u64>, Option<u64>),
+    env: impl Fn(&str) -> Option<String>,
+    hooks: &Hooks,
+) -> Result<TaskReport, ScaleoutError> {
+    let start = Instant::now();
+    let dir = work.path();
+    let ctx = Ctx::new(dir, hooks)?;
+    let task = resolve_index(index, of, ctx.frozen.tasks_of(phase), env)?;
+    let tiles = ctx.frozen.plan.tiles.len();
+    let mut r = TaskReport {
+        phase,
+        task,
+        assigned: 0,
+        done: 0,
+        skipped: 0,
+        wall_s: 0.0,
+    };
+    let single = task.index == 0;
+    match phase {
+        Phase::Partition if single => {
+            r.assigned = 1;
+            let _lock = PhaseLock::acquire(dir, phase)?;
+            if ctx.work.committed_partition(&ctx.frozen.plan).is_some() {
+                r.skipped = 1;
+            } else {
+                ctx.frozen.check_input()?;
+                let limits = ctx.frozen.limits(dir);
+                partition::partition(&ctx.job, &ctx.opts, &ctx.frozen.plan, &limits, &ctx.work)?;
+                r.done = 1;
+            }
+        }
+        Phase::Globals if cloud::needs_globals(&ctx.job.spec.params) => {
+            let part = ctx.partition(phase)?;
+            let limits = ctx.frozen.limits(dir);
+            let budget = part.budget(&limits);
+            ctx.opts.progress.phase("globals", tiles as u64);
+            for t in assigned(task.index, task.of, tiles) {
+                ctx.opts.check_cancel()?;
+                r.assigned += 1;
+                let path = globals_partial_path(dir, t);
+                if load_json::<StoredPartial>(&path).is_some() {
+                    r.skipped += 1;
+                    continue;
+                }
+                let p = globals::tile_partial(
+                    &ctx.job,
+                    &ctx.opts,
+                    &ctx.frozen.plan,
+                    &ctx.work,
+                    &budget,
+                    t,
+                )?;
+                let stored = StoredPartial {
+                    spacing: p.spacing,
+                    noise: p.noise,
+                };
+                commit_json(&path, &stored, false)?;
+                r.done += 1;
+                ctx.opts.progress.advance(r.assigned);
+            }
+        }
+        Phase::Tiles => {
+            let part = ctx.partition(phase)?;
+            let limits = ctx.frozen.limits(dir);
+            let budget = part.budget(&limits);
+            let g = ctx.globals(phase)?;
+            ctx.opts.progress.phase("tiles", tiles as u64);
+            for t in assigned(task.index, task.of, tiles) {
+                ctx.opts.check_cancel()?;
+                r.assigned += 1;
+                if ctx.work.committed_tile(t).is_some() {
+                    r.skipped += 1;
+                    continue;
+                }
+                tiles::tile(
+                    &ctx.job,
+                    &ctx.opts,
+                    &ctx.frozen.plan,
+                    &ctx.work,
+                    (&budget, &g),
+                    t,
+                    None,
+                )?;
+                r.done += 1;
+                ctx.opts.progress.advance(r.assigned);
+            }
+        }
+        Phase::Stitch if single => {
+            r.assigned = 1;
+            let _lock = PhaseLock::acquire(dir, phase)?;
+            if committed_stitch(dir, &ctx.frozen).is_some() {
+                r.skipped = 1;
+            } else {
+                let s = stitch_into(dir, &ctx.job, hooks)?;
+                let bytes = std::fs::metadata(&ctx.job.output)
+                    .map_err(|e| io::IoError::io(&ctx.job.output, e))?
+                    .len();
+                let done = StitchDone {
+                    written: s.written,
+                    found: s.found,
+                    dropped: s.dropped,
+                    normals: s.normals,
+                    bytes,
+                };
+                commit_json(&dir.join(STITCH_DONE), &done, true)?;
+                r.done = 1;
+            }
+        }
+        // A task past the phase's count (a larger array than needed) has nothing to do.
+        Phase::Partition | Phase::Globals | Phase::Stitch => {}
+    }
+    r.wall_s = start.elapsed().as_secs_f64();
+    Ok(r)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn tiles_are_dealt_round_robin() {
+        let all: Vec<Vec<usize>> = (0..3).map(|i| assigned(i, 3, 8).collect()).collect();
+        assert_eq!(all, vec![vec![0, 3, 6], vec![1, 4, 7], vec![2, 5]]);
+        assert_eq!(assigned(9, 10, 4).count(), 0);
+        assert_eq!(assigned(0, 1, 4).count(), 4);
+    }
+}
