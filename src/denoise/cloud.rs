@@ -672,7 +672,7 @@ mod tests {
                 .filter(|&j| g.isolated[j] && g.lists.get(j).len() >= kg)
                 .count();
             assert_eq!(capped, 10, "{:?}", params.method);
-            let counted = |i: usize| i % 5 != 0;
+            let counted = |i: usize| !i.is_multiple_of(5);
             let separate = globals_partial(&run, &params, counted).unwrap().0;
             let shared = partial_of(&params, &g, kg, counted);
             assert_eq!(shared, separate, "{:?}", params.method);

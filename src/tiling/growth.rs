@@ -503,6 +503,9 @@ fn cost(
     )))
 }
 
+/// A group cut in two.
+type Halves = (Vec<Pending>, Vec<Pending>);
+
 /// Cuts `group` in two when the halves are cheaper to run than the whole, or when the grid says
 /// the whole cannot fit the budget; `None` keeps it whole.
 fn cut(
@@ -512,7 +515,7 @@ fn cut(
     group: &mut Vec<Pending>,
     halo: f64,
     dir: &Path,
-) -> Result<Option<(Vec<Pending>, Vec<Pending>)>, TilingError> {
+) -> Result<Option<Halves>, TilingError> {
     if group.len() < 2 {
         return Ok(None);
     }
