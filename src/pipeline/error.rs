@@ -126,19 +126,9 @@ impl PipelineError {
     }
 
     pub(crate) fn with_input(self, input: &io::InputFile) -> PipelineError {
-        let (from, to) = (input.path(), input.shown());
-        let swap = |p: PathBuf| if p == from { to.to_path_buf() } else { p };
         match self {
             PipelineError::Io(e) => PipelineError::Io(input.explain(e)),
-            PipelineError::Denoise { path, error } => PipelineError::Denoise {
-                path: swap(path),
-                error,
-            },
-            PipelineError::Tiling { path, error } => PipelineError::Tiling {
-                path: swap(path),
-                error,
-            },
-            other => other,
+            other => other.with_path(input.path(), input.shown()),
         }
     }
 }
