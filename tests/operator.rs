@@ -156,9 +156,12 @@ proptest! {
         let a = denoise(&pos, faces.as_ref(), &params).unwrap().positions;
         let b = denoise(&rigid(q, t, &pos), faces.as_ref(), &params).unwrap().positions;
         let expect = rigid(q, t, &a);
+        // Coordinates near 1e3 carry ~1e-13 absolute rounding, and the motion itself adds more;
+        // PCA normals and two bilateral passes amplify it to ~1e-11 of the coordinates' size
+        // (CI saw 1.03e-8 at |t| = 853). A frame-dependent operator errs by the noise (1e-2).
+        let tol = 1e-10 * (1.0 + t.length());
         for (x, y) in b.iter().zip(&expect) {
-            // Coordinates near 1e3 carry ~1e-13 absolute rounding; the motion itself adds more.
-            prop_assert!((*x - *y).length() < 1e-8, "{} vs {}", x, y);
+            prop_assert!((*x - *y).length() < tol, "{} vs {}", x, y);
         }
     }
 }
