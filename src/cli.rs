@@ -68,30 +68,10 @@ pub struct PlanArgs {
     /// The work directory: a path or file:///abs/path, on a file system every task can reach.
     #[arg(long)]
     pub work: String,
-    /// Output format of the stitch (default: the input's); `qemd finish` may still write another.
-    #[arg(long, visible_alias = "output-format", ignore_case = true, value_parser = format_parser())]
-    pub format: Option<Format>,
-    /// Input format, overriding the extension and the content.
-    #[arg(long, ignore_case = true, value_parser = format_parser())]
-    pub input_format: Option<Format>,
-    /// Layout of raw .bin records (as `qemd denoise --bin-fields`).
-    #[arg(long, value_name = "FIELDS|N", value_parser = BinLayout::parse)]
-    pub bin_fields: Option<BinLayout>,
-    /// The denoising parameters (as `qemd denoise`).
+    /// The format, denoising, thread and memory flags (as `qemd denoise`; the output format is
+    /// the stitch's, by default the input's, and `qemd finish` may still write another).
     #[command(flatten)]
-    pub spec: SpecOverlay,
-    /// Worker threads of the plan pass (default: all cores).
-    #[arg(long)]
-    pub threads: Option<usize>,
-    /// Memory budget of each task; sizes the tiles (default as `qemd denoise`).
-    #[arg(long)]
-    pub memory_budget: Option<bytesize::ByteSize>,
-    /// Tiles of about this many points (default: sized to the memory budget).
-    #[arg(long)]
-    pub tile_points: Option<u64>,
-    /// Configuration file (overrides config/default.toml; QEMD_* variables override it).
-    #[arg(long)]
-    pub config: Option<PathBuf>,
+    pub run: RunFlags,
     /// Print the task counts as JSON.
     #[arg(long)]
     pub json: bool,
@@ -104,12 +84,7 @@ impl PlanArgs {
     /// The input and output formats these flags select (`None`: from the extension or content,
     /// and the input's for the output).
     pub fn formats(&self) -> (Option<Format>, Option<Format>) {
-        let input = with_layout(self.input_format, &self.input, self.bin_fields);
-        let output = match self.format {
-            Some(f) => with_layout(Some(f), Path::new(""), self.bin_fields),
-            None => None,
-        };
-        (input, output)
+        self.run.formats(&self.input, None)
     }
 }
 
@@ -199,39 +174,14 @@ pub struct DenoiseArgs {
     /// needs to seek: towards a stream it is spooled to --temp-dir, then copied).
     #[arg(short, long)]
     pub output: PathBuf,
-    /// Output format, overriding the extension.
-    #[arg(long, visible_alias = "output-format", ignore_case = true, value_parser = format_parser())]
-    pub format: Option<Format>,
-    /// Input format, overriding the extension and the content.
-    #[arg(long, ignore_case = true, value_parser = format_parser())]
-    pub input_format: Option<Format>,
-    /// Layout of raw little-endian float32 .bin records, input and output: comma-separated x, y,
-    /// z, intensity (i), ring, time (t) and _ (unnamed), or a count N (x, y, z and N − 3
-    /// unnamed). Default: KITTI x,y,z,i for *.bin, nuScenes x,y,z,i,ring for *.pcd.bin.
-    #[arg(long, value_name = "FIELDS|N", value_parser = BinLayout::parse)]
-    pub bin_fields: Option<BinLayout>,
-    /// The denoising parameters (the same spec as a job's `params` and the sync query string).
+    /// The format, denoising, thread and memory flags (shared with `qemd plan`).
     #[command(flatten)]
-    pub spec: SpecOverlay,
-    /// Worker threads (default: all cores); the output is identical for any value.
-    #[arg(long)]
-    pub threads: Option<usize>,
-    /// Memory budget; clouds whose working set is larger run in tiles (e.g. "4 GiB"). Default:
-    /// `memory_budget` of the configuration, 1 GiB unless set there or in QEMD_MEMORY_BUDGET.
-    #[arg(long)]
-    pub memory_budget: Option<bytesize::ByteSize>,
+    pub run: RunFlags,
     /// Directory for spill files and the spool of standard input; must exist (default:
     /// `temp_dir` of the configuration, else the system temporary directory). A tiled run needs
     /// about 88 bytes per point free there (checked before it starts).
     #[arg(long)]
     pub temp_dir: Option<PathBuf>,
-    /// Force tiling with about this many points per tile (default: tiles only for clouds over
-    /// the memory budget, sized to it).
-    #[arg(long)]
-    pub tile_points: Option<u64>,
-    /// Configuration file (overrides config/default.toml; QEMD_* variables override it).
-    #[arg(long)]
-    pub config: Option<PathBuf>,
     /// Write a JSON report (counts, tiles, per-phase wall and CPU time, peak RSS) here.
     #[arg(long)]
     pub report: Option<PathBuf>,
@@ -272,9 +222,57 @@ fn with_layout(given: Option<Format>, path: &Path, layout: Option<BinLayout>) ->
 impl DenoiseArgs {
     /// The input and output formats these flags select (`None`: from the extension or content).
     pub fn formats(&self) -> (Option<Format>, Option<Format>) {
+        self.run.formats(&self.input, Some(&self.output))
+    }
+}
+
+/// The flags `qemd denoise` and `qemd plan` share: formats, the denoising parameters, threads,
+/// memory and tiling (one definition, so the two commands cannot drift apart).
+#[derive(Debug, Args)]
+pub struct RunFlags {
+    /// Output format, overriding the extension.
+    #[arg(long, visible_alias = "output-format", ignore_case = true, value_parser = format_parser())]
+    pub format: Option<Format>,
+    /// Input format, overriding the extension and the content.
+    #[arg(long, ignore_case = true, value_parser = format_parser())]
+    pub input_format: Option<Format>,
+    /// Layout of raw little-endian float32 .bin records, input and output: comma-separated x, y,
+    /// z, intensity (i), ring, time (t) and _ (unnamed), or a count N (x, y, z and N − 3
+    /// unnamed). Default: KITTI x,y,z,i for *.bin, nuScenes x,y,z,i,ring for *.pcd.bin.
+    #[arg(long, value_name = "FIELDS|N", value_parser = BinLayout::parse)]
+    pub bin_fields: Option<BinLayout>,
+    /// The denoising parameters (the same spec as a job's `params` and the sync query string).
+    #[command(flatten)]
+    pub spec: SpecOverlay,
+    /// Worker threads (default: all cores); the output is identical for any value.
+    #[arg(long)]
+    pub threads: Option<usize>,
+    /// Memory budget; clouds whose working set is larger run in tiles (e.g. "4 GiB"), and it
+    /// sizes the tiles. Default: `memory_budget` of the configuration, 1 GiB unless set there or
+    /// in QEMD_MEMORY_BUDGET.
+    #[arg(long)]
+    pub memory_budget: Option<bytesize::ByteSize>,
+    /// Force tiling with about this many points per tile (default: tiles only for clouds over
+    /// the memory budget, sized to it).
+    #[arg(long)]
+    pub tile_points: Option<u64>,
+    /// Configuration file (overrides config/default.toml; QEMD_* variables override it).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+}
+
+impl RunFlags {
+    /// The formats of `input` and of `output` (`None` for the output: the input's, unless
+    /// `--format` is given).
+    fn formats(&self, input: &Path, output: Option<&Path>) -> (Option<Format>, Option<Format>) {
+        let output = match (output, self.format) {
+            (Some(path), given) => with_layout(given, path, self.bin_fields),
+            (None, Some(f)) => with_layout(Some(f), Path::new(""), self.bin_fields),
+            (None, None) => None,
+        };
         (
-            with_layout(self.input_format, &self.input, self.bin_fields),
-            with_layout(self.format, &self.output, self.bin_fields),
+            with_layout(self.input_format, input, self.bin_fields),
+            output,
         )
     }
 }

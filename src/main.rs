@@ -86,17 +86,17 @@ fn cancel_flag() -> Result<Arc<AtomicBool>> {
 
 fn plan(a: PlanArgs) -> Result<()> {
     use qem_denoise::pipeline::scaleout::{self, Phase, PlanRequest, WorkUrl};
-    init_threads(a.threads)?;
-    let config = Config::load(a.config.as_deref())?;
+    init_threads(a.run.threads)?;
+    let config = Config::load(a.run.config.as_deref())?;
     let work = WorkUrl::parse(&a.work)?;
     let (input_format, output_format) = a.formats();
     let req = PlanRequest {
         input: a.input.clone(),
         input_format,
         output_format,
-        spec: a.spec.resolve(config.outlier_alpha)?,
-        memory_budget: a.memory_budget.unwrap_or(config.memory_budget).as_u64(),
-        tile_points: a.tile_points,
+        spec: a.run.spec.resolve(config.outlier_alpha)?,
+        memory_budget: a.run.memory_budget.unwrap_or(config.memory_budget).as_u64(),
+        tile_points: a.run.tile_points,
     };
     let progress = progress_for(a.quiet);
     let planned = scaleout::plan(&work, &req, progress.clone(), cancel_flag()?);
@@ -313,15 +313,15 @@ fn init_threads(threads: Option<usize>) -> Result<()> {
 }
 
 fn denoise(a: DenoiseArgs) -> Result<()> {
-    init_threads(a.threads)?;
-    let config = Config::load(a.config.as_deref())?;
+    init_threads(a.run.threads)?;
+    let config = Config::load(a.run.config.as_deref())?;
     let (input_format, output_format) = a.formats();
     let job = Job {
         input: a.input.clone(),
         output: a.output.clone(),
         input_format,
         output_format,
-        spec: a.spec.resolve(config.outlier_alpha)?,
+        spec: a.run.spec.resolve(config.outlier_alpha)?,
     };
     let progress: Arc<dyn Progress> = if a.quiet {
         Arc::new(NoProgress)
@@ -339,9 +339,9 @@ fn denoise(a: DenoiseArgs) -> Result<()> {
             .context("cannot install the Ctrl-C handler")?;
     }
     let opts = RunOptions {
-        memory_budget: a.memory_budget.unwrap_or(config.memory_budget).as_u64(),
+        memory_budget: a.run.memory_budget.unwrap_or(config.memory_budget).as_u64(),
         temp_dir: a.temp_dir.clone().or_else(|| config.temp_dir()),
-        tile_points: a.tile_points,
+        tile_points: a.run.tile_points,
         progress: progress.clone(),
         cancel,
         work_dir: None,

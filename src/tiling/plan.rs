@@ -22,6 +22,7 @@ use std::collections::BinaryHeap;
 use glam::DVec3;
 
 use crate::points::Aabb;
+use crate::tiling::TilingError;
 
 /// Upper bound on the planning sample (the sample the isolation radius is drawn from).
 pub const SAMPLE: usize = crate::denoise::isolation::SAMPLE;
@@ -222,7 +223,11 @@ impl Planner {
     }
 
     /// Splits into tiles of about `target` points; `k` and `reach` size the initial halo.
-    pub fn finish(self, target: u64, k: usize, reach: usize) -> Plan {
+    ///
+    /// # Errors
+    /// [`TilingError::Cancelled`] once the flag installed with
+    /// [`crate::neighbours::with_cancel`] is set.
+    pub fn finish(self, target: u64, k: usize, reach: usize) -> Result<Plan, TilingError> {
         self.finish_within(target, u64::MAX, k, reach)
     }
 
@@ -230,7 +235,20 @@ impl Planner {
     /// sample predicts that one would load more than `max_load` points with its halo: small tiles
     /// over dense clusters, or a halo wide against the tile, would otherwise exceed the memory
     /// budget. The caller checks the exact loads after the partition.
-    pub fn finish_within(self, target: u64, max_load: u64, k: usize, reach: usize) -> Plan {
+    ///
+    /// Each round checks the cancel flag (issue 15: a small budget can take dozens of rounds
+    /// over the whole sample, seconds after the read has ended).
+    ///
+    /// # Errors
+    /// [`TilingError::Cancelled`] once the flag installed with
+    /// [`crate::neighbours::with_cancel`] is set.
+    pub fn finish_within(
+        self,
+        target: u64,
+        max_load: u64,
+        k: usize,
+        reach: usize,
+    ) -> Result<Plan, TilingError> {
         let mut sample: Vec<(u64, DVec3)> = self
             .sample
             .into_iter()
@@ -265,6 +283,9 @@ impl Planner {
         let mut target = target.max(1);
         // Each round shrinks the target by at least 10 %: the loop ends.
         loop {
+            if crate::neighbours::cancel_requested() {
+                return Err(TilingError::Cancelled);
+            }
             let mut nodes = Vec::new();
             let mut tiles = Vec::new();
             let mut idx: Vec<usize> = (0..pts.len()).collect();
@@ -290,7 +311,7 @@ impl Planner {
             // A tenth of margin: the sample's estimate is not the exact count.
             let load = plan.largest_load(&pts, weight);
             if load <= 0.9 * max_load as f64 || target <= MIN_TARGET {
-                return plan;
+                return Ok(plan);
             }
             let shrunk = (target as f64 * (0.9 * max_load as f64 / load) * 0.95) as u64;
             target = shrunk.min(target * 9 / 10).max(MIN_TARGET);
@@ -435,7 +456,7 @@ mod tests {
 
     #[test]
     fn every_point_has_exactly_one_owner_and_halos_cover() {
-        let plan = planner(50_000).finish(5_000, 16, 2);
+        let plan = planner(50_000).finish(5_000, 16, 2).unwrap();
         assert!(plan.tiles.len() >= 8, "{}", plan.tiles.len());
         assert_eq!((plan.points, plan.finite), (50_001, 50_000));
         for i in 0..2000u64 {
@@ -479,7 +500,7 @@ mod tests {
                 let y = (crate::points::sample_key(i + 7) % 1_000_000) as f64 * 1e-3;
                 p.add(i, DVec3::new(x, y, (x * 0.01).sin()));
             }
-            let plan = p.finish(target, 16, 2);
+            let plan = p.finish(target, 16, 2).unwrap();
             let sizes: Vec<u64> = plan.tiles.iter().map(|t| t.estimate).collect();
             assert_eq!(
                 plan.tiles.len() as u64,
@@ -501,6 +522,16 @@ mod tests {
     }
 
     #[test]
+    fn issue15_planning_stops_when_cancelled() {
+        let flag = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(true));
+        let got = crate::neighbours::with_cancel(&flag, || planner(20_000).finish(1_000, 16, 2));
+        assert!(matches!(got, Err(TilingError::Cancelled)), "{got:?}");
+        flag.store(false, std::sync::atomic::Ordering::Relaxed);
+        let got = crate::neighbours::with_cancel(&flag, || planner(20_000).finish(1_000, 16, 2));
+        assert!(got.is_ok());
+    }
+
+    #[test]
     fn sample_does_not_depend_on_order() {
         let mut a = Planner::new(100);
         let mut b = Planner::new(100);
@@ -510,6 +541,9 @@ mod tests {
         for i in (0..10_000u64).rev() {
             b.add(i, DVec3::splat(i as f64));
         }
-        assert_eq!(a.finish(1000, 16, 2), b.finish(1000, 16, 2));
+        assert_eq!(
+            a.finish(1000, 16, 2).unwrap(),
+            b.finish(1000, 16, 2).unwrap()
+        );
     }
 }

@@ -330,7 +330,7 @@ mod tests {
             let x = i as f64;
             p.add(i, glam::DVec3::new(x, (x * 0.7).sin(), 0.0));
         }
-        p.finish(50, 8, 2)
+        p.finish(50, 8, 2).unwrap()
     }
 
     #[test]

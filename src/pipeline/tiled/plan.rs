@@ -6,7 +6,7 @@ use glam::DVec3;
 use crate::denoise::DenoiseError;
 use crate::denoise::cloud;
 use crate::io::SourceInfo;
-use crate::neighbours::NeighboursError;
+use crate::neighbours::{NeighboursError, with_cancel};
 use crate::pipeline::stream::stream;
 use crate::pipeline::{Job, PipelineError, RunOptions};
 use crate::tiling::plan::{Plan, Planner, SAMPLE};
@@ -73,10 +73,9 @@ pub fn plan(
             k,
         }));
     }
-    Ok(planner.finish_within(
-        limits.target,
-        limits.max_points,
-        k,
-        cloud::reach(&job.spec.params),
-    ))
+    let reach = cloud::reach(&job.spec.params);
+    with_cancel(&opts.cancel, || {
+        planner.finish_within(limits.target, limits.max_points, k, reach)
+    })
+    .map_err(|e| PipelineError::tiling(&job.input, e))
 }
