@@ -483,7 +483,7 @@ mod tests {
         let Command::Denoise(a) = cli.command else {
             panic!("not denoise")
         };
-        a.spec.resolve(DEFAULT_OUTLIER_ALPHA).unwrap().params
+        a.run.spec.resolve(DEFAULT_OUTLIER_ALPHA).unwrap().params
     }
 
     #[test]
@@ -538,7 +538,7 @@ mod tests {
         let Command::Denoise(a) = cli.command else {
             panic!("not denoise")
         };
-        let s = a.spec.resolve(DEFAULT_OUTLIER_ALPHA).unwrap();
+        let s = a.run.spec.resolve(DEFAULT_OUTLIER_ALPHA).unwrap();
         assert_eq!((s.outliers, s.outlier_alpha), (OutlierMode::Classify, 1.5));
     }
 }
