@@ -56,6 +56,7 @@ pub(crate) fn run(
     timer.lap("partition", &mut phases);
 
     let globals = globals::globals(job, opts, &plan, &work, &budget)?;
+    timer.lap("globals", &mut phases);
     let tiles = tiles::tiles(job, opts, &plan, &work, &budget, &globals)?;
     timer.lap("tiles", &mut phases);
 
@@ -188,13 +189,13 @@ mod tests {
             std::fs::read(d.path().join("b.ply")).unwrap(),
             std::fs::read(d.path().join("a.ply")).unwrap()
         );
-        let names: Vec<String> = ["plan", "partition", "tiles", "stitch"]
+        let names: Vec<String> = ["plan", "partition", "globals", "tiles", "stitch"]
             .map(String::from)
             .into();
         let got: Vec<String> = tiled
             .phases
             .iter()
-            .take(4)
+            .take(5)
             .map(|p| p.name.clone())
             .collect();
         assert_eq!(got, names);
