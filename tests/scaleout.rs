@@ -303,3 +303,79 @@ fn issue11_a_work_directory_keeps_its_job() {
     assert_eq!(r["assigned"], 0);
     assert!(!work.join("spill.done").exists());
 }
+
+/// Spawns `qemd worker --phase PHASE` on `work` and SIGKILLs it as soon as `midway` holds for
+/// the work directory's file names. Returns false when the task ended before that.
+fn kill_midway(work: &Path, phase: &str, midway: impl Fn(&[String]) -> bool) -> bool {
+    let mut child = Command::new(env!("CARGO_BIN_EXE_qemd"))
+        .args(["worker", "--work", s(work), "--phase", phase, "-q"])
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let start = Instant::now();
+    loop {
+        let names: Vec<String> = std::fs::read_dir(work)
+            .unwrap()
+            .filter_map(|e| Some(e.ok()?.file_name().to_string_lossy().into_owned()))
+            .collect();
+        if midway(&names) {
+            child.kill().unwrap();
+            child.wait().unwrap();
+            return true;
+        }
+        if child.try_wait().unwrap().is_some() {
+            return false;
+        }
+        assert!(
+            start.elapsed() < Duration::from_secs(300),
+            "{phase}: no progress"
+        );
+        std::thread::sleep(Duration::from_millis(1));
+    }
+}
+
+#[test]
+fn issue11_partition_and_stitch_killed_midway_rerun_to_the_same_bytes() {
+    let d = tempfile::tempdir().unwrap();
+    let input = d.path().join("in.ply");
+    surface(&input, 40_000);
+    let want = reference(d.path(), &input);
+    let work = d.path().join("work");
+    plan(&input, &work);
+
+    // Partition: killed once spill files exist and before its commit marker.
+    let killed = kill_midway(&work, "partition", |names| {
+        names.iter().any(|n| n.ends_with(".pts")) && !names.iter().any(|n| n == "spill.done")
+    });
+    assert!(killed, "the partition ended before it could be killed");
+    let st: serde_json::Value =
+        serde_json::from_str(&ok(&["status", "--work", s(&work), "--json"])).unwrap();
+    assert_eq!(
+        st["next"], "partition",
+        "a killed partition is not committed: {st}"
+    );
+    worker(&work, "partition", 0, 1);
+    worker(&work, "globals", 0, 1);
+    worker(&work, "tiles", 0, 1);
+
+    // Stitch: killed while its output is still a temporary file.
+    let killed = kill_midway(&work, "stitch", |names| {
+        names
+            .iter()
+            .any(|n| n.starts_with(".output.") && n.ends_with(".tmp"))
+    });
+    assert!(killed, "the stitch ended before it could be killed");
+    let st: serde_json::Value =
+        serde_json::from_str(&ok(&["status", "--work", s(&work), "--json"])).unwrap();
+    assert_eq!(
+        st["next"], "stitch",
+        "a killed stitch is not committed: {st}"
+    );
+
+    // The rerun commits, and finish gives the bytes of `qemd denoise`.
+    worker(&work, "stitch", 0, 1);
+    let out = d.path().join("out.ply");
+    ok(&["finish", "--work", s(&work), "-o", s(&out), "-q"]);
+    assert!(std::fs::read(&out).unwrap() == want, "bytes differ");
+}
