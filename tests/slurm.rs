@@ -102,7 +102,16 @@ impl Cluster {
     fn states(&self, ids: &[String]) -> Vec<(String, String, String)> {
         let out = self.run(
             "squeue",
-            &["-h", "-r", "-t", "all", "-o", "%i|%T|%r", "-j", &ids.join(",")],
+            &[
+                "-h",
+                "-r",
+                "-t",
+                "all",
+                "-o",
+                "%i|%T|%r",
+                "-j",
+                &ids.join(","),
+            ],
         );
         out.lines()
             .filter_map(|l| {
@@ -233,7 +242,11 @@ impl SlurmJob {
             let ids = (0..copies)
                 .map(|_| self.sbatch(phase, size, &after))
                 .collect();
-            out.push(Submitted { phase, n: size, ids });
+            out.push(Submitted {
+                phase,
+                n: size,
+                ids,
+            });
         }
         out
     }
@@ -246,8 +259,8 @@ impl SlurmJob {
     /// The worker's JSON report in the log of task `i` of `id`.
     fn report(&self, phase: &str, id: &str, i: u64) -> serde_json::Value {
         let log = self.log(phase, id, i);
-        let text = std::fs::read_to_string(&log)
-            .unwrap_or_else(|e| panic!("{}: {e}", log.display()));
+        let text =
+            std::fs::read_to_string(&log).unwrap_or_else(|e| panic!("{}: {e}", log.display()));
         let line = text
             .lines()
             .find(|l| l.starts_with('{'))
@@ -438,8 +451,10 @@ fn issue11_slurm_a_task_cancelled_mid_way_and_requeued_changes_no_byte() {
     // requeued (SLURM holds a requeued job ~2 min; StartTime=now lifts that) and the stitch is
     // made to wait on each task instead.
     job.c.run("scontrol", &["requeue", &task]);
-    job.c
-        .run("scontrol", &["update", &format!("JobId={task}"), "StartTime=now"]);
+    job.c.run(
+        "scontrol",
+        &["update", &format!("JobId={task}"), "StartTime=now"],
+    );
     let each: Vec<String> = (0..n).map(|i| format!("{tiles_id}_{i}")).collect();
     job.c.run(
         "scontrol",
