@@ -12,8 +12,8 @@ use qem_denoise::points::ScalarType;
 
 use crate::util::{qemd, s};
 
-/// A wavy surface with noise and far outliers (as tests/seams.rs).
-fn surface(path: &Path, n: usize) {
+/// A wavy surface with noise and far outliers (as tests/seams.rs); tests/slurm.rs uses it too.
+pub fn surface(path: &Path, n: usize) {
     let mut x = 0x9e37_79b9_7f4a_7c15u64;
     let mut f = move || {
         x ^= x << 13;

@@ -25,6 +25,7 @@ mod resume;
 mod scaleout;
 mod seams;
 mod server;
+mod slurm;
 mod streams;
 mod table;
 mod tempdir;
