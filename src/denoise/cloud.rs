@@ -181,11 +181,8 @@ pub fn reach(params: &Params) -> usize {
         // Per cycle: PCA normals (1 hop), each filter iteration (1), each update (1: the
         // neighbours' planes, moved by the previous update); the first update also reads the
         // neighbours' normals, whose PCA reads their lists (+1).
-        // The guarded operator's classes and noise scales read the members' fits (+1), and
-        // each update's gains read the list's offsets (+1 per update).
-        Method::Qem => {
-            s.cycles * (2 + s.filter + s.updates + usize::from(params.guard) * (1 + s.updates))
-        }
+        // The guarded operator's classes and noise scales read the members' fits (+1).
+        Method::Qem => s.cycles * (2 + s.filter + s.updates + usize::from(params.guard)),
         Method::Bilateral => s.cycles,
     }
 }
@@ -469,9 +466,8 @@ fn run_on(
                 bound: &bound,
                 max_move: params.max_move,
             };
-            let mut gain = None;
             for _ in 0..sched.updates {
-                let step = guarded::step(&cur, &lists, &g, params, &mut gain);
+                let step = guarded::step(&cur, &lists, &g, params);
                 cur = merge_step(step, &mut stayed);
                 hold(&mut cur, &mut stayed);
                 check_cancel()?;
