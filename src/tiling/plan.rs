@@ -236,15 +236,6 @@ impl Planner {
     /// over dense clusters, or a halo wide against the tile, would otherwise exceed the memory
     /// budget. The caller checks the exact loads after the partition.
     ///
-    /// Shrinking stops early when it cannot reach the budget. Two rounds tell how much of the
-    /// largest load is the tile's own: the load fell by a share `s` of the target's relative cut
-    /// (`s` = owned share of the load); the rest is the halo's (a dense cluster inside a halo
-    /// sized by the cloud's typical spacing) and no smaller tile removes it. Once even a load
-    /// without its owned share, `load · (1 − s)`, would exceed the bound, more rounds would
-    /// only multiply the tiles and their halo copies (a 30 M-point cluttered scene went to
-    /// 30 339 tiles of 1000 points and 18 GB of spill; docs/BENCHMARKS.md): the plan of the
-    /// round before is kept, and the partition's exact check decides whether it fits.
-    ///
     /// Each round checks the cancel flag (issue 15: a small budget can take dozens of rounds
     /// over the whole sample, seconds after the read has ended).
     ///
@@ -290,7 +281,6 @@ impl Planner {
         // [`SAMPLE`], as the pipeline's is.
         let isolation = crate::denoise::isolation::radius(&pts, origin, self.finite, k);
         let mut target = target.max(1);
-        let mut previous: Option<(Plan, f64, u64)> = None;
         // Each round shrinks the target by at least 10 %: the loop ends.
         loop {
             if crate::neighbours::cancel_requested() {
@@ -323,15 +313,6 @@ impl Planner {
             if load <= 0.9 * max_load as f64 || target <= MIN_TARGET {
                 return Ok(plan);
             }
-            if let Some((before, before_load, before_target)) = previous.take() {
-                let cut = 1.0 - target as f64 / before_target as f64;
-                let fell = 1.0 - load / before_load;
-                let owned = (fell / cut).clamp(0.0, 1.0);
-                if load * (1.0 - owned) > 0.9 * max_load as f64 {
-                    return Ok(before);
-                }
-            }
-            previous = Some((plan, load, target));
             let shrunk = (target as f64 * (0.9 * max_load as f64 / load) * 0.95) as u64;
             target = shrunk.min(target * 9 / 10).max(MIN_TARGET);
         }
@@ -538,39 +519,6 @@ mod tests {
                 "{total} vs {n}"
             );
         }
-    }
-
-    #[test]
-    fn issue16_shrinking_stops_when_the_halo_holds_the_load() {
-        // A plane of 20 000 points on a 1000-unit square and 5 000 duplicates-like points in a
-        // cluster far smaller than the halo: whatever the tile size, the tile holding the
-        // cluster loads it whole, so shrinking below a few thousand points gains nothing.
-        let build = || {
-            let mut p = Planner::new(1 << 16);
-            for i in 0..20_000u64 {
-                let x = (crate::points::sample_key(i) % 100_000) as f64 * 0.01;
-                let y = (crate::points::sample_key(i + 7) % 100_000) as f64 * 0.01;
-                p.add(i, DVec3::new(x, y, 0.0));
-            }
-            for i in 20_000..25_000u64 {
-                let d = (crate::points::sample_key(i) % 1000) as f64 * 1e-6;
-                p.add(i, DVec3::new(500.0 + d, 500.0 - d, d));
-            }
-            p
-        };
-        let plan = build().finish_within(20_000, 6_000, 16, 2).unwrap();
-        let smallest = plan.tiles.iter().map(|t| t.estimate).filter(|&e| e > 0);
-        assert!(plan.tiles.len() < 16, "{} tiles", plan.tiles.len());
-        assert!(smallest.min().unwrap() > MIN_TARGET, "shrunk to the floor");
-        // Without the cluster the same budget is met by shrinking, as before.
-        let mut plain = Planner::new(1 << 16);
-        for i in 0..20_000u64 {
-            let x = (crate::points::sample_key(i) % 100_000) as f64 * 0.01;
-            let y = (crate::points::sample_key(i + 7) % 100_000) as f64 * 0.01;
-            plain.add(i, DVec3::new(x, y, 0.0));
-        }
-        let plan = plain.finish_within(20_000, 3_000, 16, 2).unwrap();
-        assert!(plan.tiles.len() >= 8, "{}", plan.tiles.len());
     }
 
     #[test]
