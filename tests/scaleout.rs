@@ -38,7 +38,8 @@ pub fn surface(path: &Path, n: usize) {
 /// The flags every run of these tests shares (several tiles; outliers flagged).
 const FLAGS: [&str; 4] = ["--tile-points", "1500", "--outliers", "classify"];
 
-fn ok(args: &[&str]) -> String {
+/// Runs `qemd ARGS`, asserts it succeeded and returns its standard output.
+pub fn ok(args: &[&str]) -> String {
     let o = qemd(args);
     assert!(
         o.status.success(),

@@ -13,8 +13,8 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::{Duration, Instant};
 
-use crate::scaleout::surface;
-use crate::util::{qemd, s};
+use crate::scaleout::{ok, surface};
+use crate::util::s;
 
 /// The bound on any one wait for the cluster (a phase, a state).
 const TIMEOUT: Duration = Duration::from_secs(600);
@@ -329,16 +329,6 @@ impl SlurmJob {
         assert!(st["next"].is_null(), "{st}");
         std::fs::read(out).unwrap()
     }
-}
-
-fn ok(args: &[&str]) -> String {
-    let o = qemd(args);
-    assert!(
-        o.status.success(),
-        "qemd {args:?}: {}",
-        String::from_utf8_lossy(&o.stderr)
-    );
-    String::from_utf8_lossy(&o.stdout).into_owned()
 }
 
 /// Runs the job of `input` with `flags` as SLURM arrays of at most `n` tasks (`copies` of
