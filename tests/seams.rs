@@ -211,6 +211,25 @@ fn sparse_volume_iterated_operator() {
     );
 }
 
+/// The guarded operator's gains read the first update's offsets of the list, one hop past that
+/// update: with a single update per cycle that hop is the reach's, not the second update's.
+/// (This fails when the reach is far too short, as at 1 hop; a reach one hop short is within the
+/// halo's margin and passes.)
+#[test]
+fn guarded_gains_with_one_update_per_cycle() {
+    let d = tempfile::tempdir().unwrap();
+    let input = write(d.path(), "one_update.ply", surface(3000, 6));
+    assert_seamless(
+        &input,
+        &job(Params {
+            updates: Some(1),
+            iterations: 2,
+            ..Params::default()
+        }),
+        SIZES,
+    );
+}
+
 #[test]
 fn bilateral_with_its_global_pre_pass() {
     let d = tempfile::tempdir().unwrap();

@@ -181,8 +181,12 @@ pub fn reach(params: &Params) -> usize {
         // Per cycle: PCA normals (1 hop), each filter iteration (1), each update (1: the
         // neighbours' planes, moved by the previous update); the first update also reads the
         // neighbours' normals, whose PCA reads their lists (+1).
-        // The guarded operator's classes and noise scales read the members' fits (+1).
-        Method::Qem => s.cycles * (2 + s.filter + s.updates + usize::from(params.guard)),
+        // The guarded operator's classes and noise scales read the members' fits (+1). Its
+        // gains, computed once per cycle, read the first update's offsets of the list: one hop
+        // past the first update, which the second update reaches anyway (the default has two),
+        // so only a single-update cycle needs the extra hop.
+        Method::Qem if params.guard => s.cycles * (3 + s.filter + s.updates.max(2)),
+        Method::Qem => s.cycles * (2 + s.filter + s.updates),
         Method::Bilateral => s.cycles,
     }
 }
@@ -466,8 +470,9 @@ fn run_on(
                 bound: &bound,
                 max_move: params.max_move,
             };
+            let mut gain = None;
             for _ in 0..sched.updates {
-                let step = guarded::step(&cur, &lists, &g, params);
+                let step = guarded::step(&cur, &lists, &g, params, &mut gain);
                 cur = merge_step(step, &mut stayed);
                 hold(&mut cur, &mut stayed);
                 check_cancel()?;

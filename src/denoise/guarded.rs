@@ -19,7 +19,10 @@
 //! under an isolated point) lose their vote instead of dragging the point. The summed quadric is
 //! minimised with the damped solve. Where the neighbourhood is rougher than the scan's noise
 //! (`s_i > WIENER·g`, `g` the global noise of [`super::cloud::Globals`]) the step is scaled by the
-//! Wiener gain `(WIENER·g / s_i)²`, the share of the local spread the noise explains. The point's total
+//! Wiener gain `(WIENER·g / s_i)²`, the share of the local spread the noise explains; and where
+//! the list's offsets are larger than the noise (`m_i`, their mean square per spanned direction,
+//! above `g²`) by the shrinkage `g² / m_i`, the optimal share `σ²/(σ² + v)` of a step whose
+//! plane estimate has error variance `v` ([`gains`]; computed in the first update of a cycle). The point's total
 //! displacement from where the run found it is clamped to `STEP · min(s_i, g)` (and to
 //! `--max-move`): no point moves farther than the noise its neighbourhood shows. Scatter, sparse and degenerate points do not move.
 
@@ -130,37 +133,108 @@ fn quadric(pos: &[DVec3], g: &Guard, lists: &Neighbourhoods, i: usize) -> Quadri
     q
 }
 
-/// One guarded pass over every point: the new position and why it stayed or was clamped
-/// ([`stay`] flags).
-pub fn step(pos: &[DVec3], lists: &Neighbourhoods, g: &Guard, params: &Params) -> Vec<(DVec3, u8)> {
+/// The quadric offset of every point that moves (`None` for those that stay), with its
+/// [`stay`] flag.
+fn offsets(
+    pos: &[DVec3],
+    lists: &Neighbourhoods,
+    g: &Guard,
+    params: &Params,
+) -> Vec<(Option<DVec3>, u8)> {
     (0..pos.len())
         .into_par_iter()
         .with_min_len(1024)
         .map(|i| {
             let v = pos[i];
-            if !v.is_finite() || !g.classes[i].moves() {
-                return (v, 0);
+            if !v.is_finite() || !g.classes[i].moves() || g.bound[i] <= 0.0 {
+                return (None, 0);
             }
-            let mut bound = STEP * g.bound[i];
-            if let Some(m) = g.max_move {
-                bound = bound.min(m);
-            }
-            if bound <= 0.0 {
-                return (v, 0);
+            if g.max_move.is_some_and(|m| m <= 0.0) {
+                return (None, 0);
             }
             let q = quadric(pos, g, lists, i);
-            let Some(w) = params.solver_for(q.a.trace()).offset(&q) else {
-                return (v, stay::SINGULAR);
-            };
-            // Wiener gain: the share of the local spread the scan's noise explains. A rough
-            // neighbourhood (vegetation, fine detail, coarse far range) moves by that share only.
+            match params.solver_for(q.a.trace()).offset(&q) {
+                Some(w) => (Some(w), 0),
+                None => (None, stay::SINGULAR),
+            }
+        })
+        .collect()
+}
+
+/// Directions a point's offset spans: one (along a plane normal) for surfaces and edges, two
+/// (across the axis) for lines.
+#[inline]
+fn dims(s: Structure) -> f64 {
+    if s == Structure::Line { 2.0 } else { 1.0 }
+}
+
+/// The gain of every point that moves, from the offsets `offs` of the first update.
+///
+/// Two shrinkage factors, both the share of a spread that the noise explains:
+/// - Wiener: the neighbourhood's plane-fit spread `s_i` against the capped noise `b_i`,
+///   `min(1, (WIENER·b_i / s_i)²)`;
+/// - shrinkage: the mean squared offset of the list's moving points per spanned direction,
+///   `m_i`, against `b_i²`, `min(1, b_i² / m_i)`. For a point at noise σ along the normal and a
+///   plane estimate with error variance `v` (bias included), the offset's expected square is
+///   `σ² + v` and the step minimising the expected error is `σ²/(σ² + v)` of it: where the planes
+///   disagree with the points (edges, vegetation, scan lines) the offsets exceed the noise and
+///   the step is damped towards zero.
+pub fn gains(lists: &Neighbourhoods, g: &Guard, offs: &[(Option<DVec3>, u8)]) -> Vec<f64> {
+    (0..offs.len())
+        .into_par_iter()
+        .with_min_len(1024)
+        .map(|i| {
+            if offs[i].0.is_none() {
+                return 0.0;
+            }
             let explained = WIENER * g.bound[i];
-            let gain = if g.noise[i] > explained {
+            let wiener = if g.noise[i] > explained {
                 (explained / g.noise[i]).powi(2)
             } else {
                 1.0
             };
-            clamp(g.start[i], v + w * gain, bound)
+            let (mut sum, mut n) = (0.0, 0usize);
+            for &u in lists.get(i) {
+                if let Some(w) = offs[u as usize].0 {
+                    sum += w.length_squared() / dims(g.classes[u as usize]);
+                    n += 1;
+                }
+            }
+            // n ≥ 1: the list holds the point itself, which has an offset.
+            let sigma2 = g.bound[i] * g.bound[i];
+            let mean = sum / n as f64;
+            let shrink = if mean > sigma2 { sigma2 / mean } else { 1.0 };
+            shrink * wiener
+        })
+        .collect()
+}
+
+/// One guarded update of every point: the new position and why it stayed or was clamped
+/// ([`stay`] flags). The first update of a cycle (`gain` is `None`) computes the gains from its
+/// offsets and stores them; later updates reuse them, since their offsets no longer carry the
+/// scan's noise.
+pub fn step(
+    pos: &[DVec3],
+    lists: &Neighbourhoods,
+    g: &Guard,
+    params: &Params,
+    gain: &mut Option<Vec<f64>>,
+) -> Vec<(DVec3, u8)> {
+    let offs = offsets(pos, lists, g, params);
+    let gs: &[f64] = gain.get_or_insert_with(|| gains(lists, g, &offs));
+    (0..pos.len())
+        .into_par_iter()
+        .with_min_len(1024)
+        .map(|i| {
+            let v = pos[i];
+            let (Some(w), _) = offs[i] else {
+                return (v, offs[i].1);
+            };
+            let mut bound = STEP * g.bound[i];
+            if let Some(m) = g.max_move {
+                bound = bound.min(m);
+            }
+            clamp(g.start[i], v + w * gs[i], bound)
         })
         .collect()
 }
