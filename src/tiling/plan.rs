@@ -236,6 +236,11 @@ impl Planner {
     /// over dense clusters, or a halo wide against the tile, would otherwise exceed the memory
     /// budget. The caller checks the exact loads after the partition.
     ///
+    /// Shrinking stops at what no tile size removes: before the first shrink the smallest tiles'
+    /// load is estimated, and when it exceeds `max_load` the first plan is kept (the exact check
+    /// refuses it); when it fits only without the tenth of margin, the first tiles within 5 % of
+    /// it are kept (issue 16).
+    ///
     /// Each round checks the cancel flag (issue 15: a small budget can take dozens of rounds
     /// over the whole sample, seconds after the read has ended).
     ///
@@ -280,12 +285,7 @@ impl Planner {
         // The in-memory path draws the same radius from the same sample when the capacity is
         // [`SAMPLE`], as the pipeline's is.
         let isolation = crate::denoise::isolation::radius(&pts, origin, self.finite, k);
-        let mut target = target.max(1);
-        // Each round shrinks the target by at least 10 %: the loop ends.
-        loop {
-            if crate::neighbours::cancel_requested() {
-                return Err(TilingError::Cancelled);
-            }
+        let plan_at = |target: u64| {
             let mut nodes = Vec::new();
             let mut tiles = Vec::new();
             let mut idx: Vec<usize> = (0..pts.len()).collect();
@@ -308,10 +308,40 @@ impl Planner {
                 halo,
                 isolation,
             };
-            // A tenth of margin: the sample's estimate is not the exact count.
             let load = plan.largest_load(&pts, weight);
-            if load <= 0.9 * max_load as f64 || target <= MIN_TARGET {
+            (plan, load)
+        };
+        let mut target = target.max(1);
+        // A tenth of margin: the sample's estimate is not the exact count.
+        let mut accept = 0.9 * max_load as f64;
+        let mut floor_probed = false;
+        // Each round shrinks the target by at least 10 %: the loop ends.
+        loop {
+            if crate::neighbours::cancel_requested() {
+                return Err(TilingError::Cancelled);
+            }
+            let (plan, load) = plan_at(target);
+            if load <= accept || target <= MIN_TARGET {
                 return Ok(plan);
+            }
+            // Before the first shrink, the smallest tiles' load `f`: what no shrinking removes
+            // (a dense cluster inside a halo sized by the cloud's typical spacing loads whole,
+            // whatever the tile). More tiles than needed only multiply the halo copies (a 30 M
+            // cluttered scene went to 30 339 tiles and 18 GB of spill, docs/BENCHMARKS.md).
+            // - `f` over the budget: shrinking cannot help; this plan is kept and the partition's
+            //   exact check refuses it before any tile work.
+            // - `f` within the budget but above the margin: the first tiles whose load is within
+            //   5 % of `f` (and of the budget) are kept; the exact check decides.
+            if !floor_probed {
+                floor_probed = true;
+                let (_, f) = plan_at(MIN_TARGET);
+                if f > max_load as f64 {
+                    return Ok(plan);
+                }
+                accept = accept.max((1.05 * f).min(max_load as f64));
+                if load <= accept {
+                    return Ok(plan);
+                }
             }
             let shrunk = (target as f64 * (0.9 * max_load as f64 / load) * 0.95) as u64;
             target = shrunk.min(target * 9 / 10).max(MIN_TARGET);
@@ -519,6 +549,64 @@ mod tests {
                 "{total} vs {n}"
             );
         }
+    }
+
+    /// A plane of 20 000 points on a 1000-unit square and 5 000 points in a cluster far smaller
+    /// than the halo: whatever the tile size, a tile near the cluster loads it whole. The
+    /// planner's sample holds every point, so its load estimates are exact.
+    fn plane_with_cluster() -> (Planner, Vec<DVec3>) {
+        let mut pts = Vec::new();
+        for i in 0..20_000u64 {
+            let x = (crate::points::sample_key(i) % 100_000) as f64 * 0.01;
+            let y = (crate::points::sample_key(i + 7) % 100_000) as f64 * 0.01;
+            pts.push(DVec3::new(x, y, 0.0));
+        }
+        for i in 20_000..25_000u64 {
+            let d = (crate::points::sample_key(i) % 1000) as f64 * 1e-6;
+            pts.push(DVec3::new(500.0 + d, 500.0 - d, d));
+        }
+        let mut p = Planner::new(1 << 16);
+        for (i, &v) in pts.iter().enumerate() {
+            p.add(i as u64, v);
+        }
+        (p, pts)
+    }
+
+    #[test]
+    fn issue16_shrinking_stops_where_the_halo_holds_the_load() {
+        let (p, pts) = plane_with_cluster();
+        let floor = p.finish_within(MIN_TARGET, 1, 16, 2).unwrap();
+        let f = floor.largest_load(&pts, 1.0);
+        assert!(f > 5_000.0, "the cluster loads whole: {f}");
+        // Over the budget even at the smallest tiles: the first plan is kept (the partition's
+        // exact check refuses it), not dozens of 1000-point tiles.
+        let refused = plane_with_cluster()
+            .0
+            .finish_within(20_000, (0.95 * f) as u64, 16, 2)
+            .unwrap();
+        assert!(refused.tiles.len() <= 2, "{} tiles", refused.tiles.len());
+        // Within the budget only without the tenth of margin: the first tiles whose load is
+        // within 5 % of the smallest tiles' are kept, fewer than the floor's.
+        let kept = plane_with_cluster()
+            .0
+            .finish_within(20_000, (1.02 * f) as u64, 16, 2)
+            .unwrap();
+        assert!(kept.largest_load(&pts, 1.0) <= 1.02 * f);
+        assert!(
+            kept.tiles.len() < floor.tiles.len(),
+            "{} tiles against the floor's {}",
+            kept.tiles.len(),
+            floor.tiles.len()
+        );
+        // Without the cluster the same budget is met by shrinking, as before.
+        let mut plain = Planner::new(1 << 16);
+        for i in 0..20_000u64 {
+            let x = (crate::points::sample_key(i) % 100_000) as f64 * 0.01;
+            let y = (crate::points::sample_key(i + 7) % 100_000) as f64 * 0.01;
+            plain.add(i, DVec3::new(x, y, 0.0));
+        }
+        let plan = plain.finish_within(20_000, 3_000, 16, 2).unwrap();
+        assert!(plan.tiles.len() >= 8, "{}", plan.tiles.len());
     }
 
     #[test]
