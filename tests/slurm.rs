@@ -18,6 +18,9 @@ use crate::util::s;
 
 /// The bound on any one wait for the cluster (a phase, a state).
 const TIMEOUT: Duration = Duration::from_secs(600);
+/// How long a `DependencyNeverSatisfied` reason may persist before a wait gives up: longer
+/// than slurmctld's scheduling interval (`sched_interval`, 60 s by default).
+const STALE_REASON: Duration = Duration::from_secs(90);
 
 /// The phases in the order they run (as `qemd plan --json` names them).
 const PHASES: [&str; 4] = ["partition", "globals", "tiles", "stitch"];
@@ -269,12 +272,27 @@ impl SlurmJob {
     }
 
     /// Waits (bounded) until every task of `ids` has ended; panics unless all completed.
+    ///
+    /// A pending task whose reason stays `DependencyNeverSatisfied` for longer than
+    /// [`STALE_REASON`] fails the wait early. Not at first sight: after a dependency is
+    /// updated (the requeue test), squeue keeps showing the old reason until slurmctld's next
+    /// scheduling pass re-evaluates it (CI of stop 22 failed on exactly that).
     fn wait_completed(&self, ids: &[String]) {
         let start = Instant::now();
+        let mut never_since: Option<Instant> = None;
         loop {
             let st = self.c.states(ids);
             if let Some(r) = st.iter().find(|r| r.2 == "DependencyNeverSatisfied") {
-                panic!("{}: its dependency can never be satisfied: {st:?}", r.0);
+                let since = *never_since.get_or_insert_with(Instant::now);
+                if since.elapsed() > STALE_REASON {
+                    panic!(
+                        "{}: its dependency can never be satisfied (for {:?}): {st:?}",
+                        r.0,
+                        since.elapsed()
+                    );
+                }
+            } else {
+                never_since = None;
             }
             if !st.is_empty() && st.iter().all(|r| TERMINAL.contains(&r.1.as_str())) {
                 let bad: Vec<_> = st.iter().filter(|r| r.1 != "COMPLETED").collect();
