@@ -111,8 +111,8 @@ pub fn globals_partial(
     counted: impl Fn(usize) -> bool,
 ) -> Result<(GlobalsPartial, Vec<bool>), DenoiseError> {
     let kg = globals_k(params);
-    let g = graph(run, kg)?;
-    let exact_f = taint(run, &g.frame.positions, &g.lists, &g.radii, 0);
+    let g = graph(run, kg, 0)?;
+    let exact_f = taint(run, &g, 0);
     let mut exact = vec![false; run.positions.len()];
     for (j, &i) in g.frame.order.iter().enumerate() {
         exact[i as usize] = !exact_f[j];
@@ -205,6 +205,10 @@ pub struct CloudRun<'a> {
     /// The cloud's isolation radius ([`super::isolation::radius`]), the same for every tile;
     /// `None` caps no list.
     pub isolation: Option<f64>,
+    /// For a tile: the points whose results the caller keeps (its owned ones), `None` for all.
+    /// When they are few, only the lists their results depend on are computed, and every other
+    /// result is reported not exact.
+    pub wanted: Option<&'a [bool]>,
     /// For a tile: whether the ball (centre, squared radius) holds no point the caller does not
     /// have, for balls that leave `region` (the tiling's occupancy grid proves it). `None`: only
     /// balls inside `region` are complete.
@@ -266,13 +270,31 @@ struct Graph {
     index: KnnIndex,
     /// Which points are isolated (capped lists).
     isolated: Vec<bool>,
+    /// Which points have their own list (empty: all): the others' results are not exact.
+    listed: Vec<bool>,
 }
 
-/// Builds the k-NN graph of a run in spatial order.
-fn graph(run: &CloudRun, k: usize) -> Result<Graph, DenoiseError> {
+/// [`CloudRun::wanted`] points are listed alone (with what they depend on) only when they are at
+/// most this share of the run: every further hop costs a grid pass over the whole run.
+const WANTED_SHARE: f64 = 0.25;
+
+/// Builds the k-NN graph of a run in spatial order; with [`CloudRun::wanted`] points few enough,
+/// only the lists within `hops` hops of them.
+fn graph(run: &CloudRun, k: usize, hops: usize) -> Result<Graph, DenoiseError> {
     let frame = Frame::new(run.positions, Some(run.ties));
     let index = KnnIndex::build_with_ties(&frame.positions, run.origin, frame.ties.clone())?;
-    let (lists, radii) = index.knn_all(k)?;
+    let seeds: Option<Vec<bool>> = run.wanted.and_then(|w| {
+        let n = w.iter().filter(|&&x| x).count();
+        (n as f64 <= WANTED_SHARE * w.len() as f64)
+            .then(|| frame.order.iter().map(|&i| w[i as usize]).collect())
+    });
+    let (lists, radii, listed) = match seeds {
+        Some(s) => index.knn_near(k, &s, hops)?,
+        None => {
+            let (lists, radii) = index.knn_all(k)?;
+            (lists, radii, Vec::new())
+        }
+    };
     let (lists, radii, isolated) =
         super::isolation::cap_lists(lists, radii, run.isolation, |i, u| index.dist2(i, u));
     Ok(Graph {
@@ -281,6 +303,7 @@ fn graph(run: &CloudRun, k: usize) -> Result<Graph, DenoiseError> {
         radii,
         index,
         isolated,
+        listed,
     })
 }
 
@@ -294,22 +317,20 @@ fn inside(region: &Aabb, p: DVec3, r2: f64) -> bool {
 }
 
 /// Points whose result may differ from the whole-cloud result after `hops` hops: seeded by the
-/// points whose k-NN ball leaves the region (and is not proven complete), spread to every point
-/// whose list holds a tainted one.
-fn taint(
-    run: &CloudRun,
-    pos: &[DVec3],
-    lists: &Neighbourhoods,
-    radii: &[f64],
-    hops: usize,
-) -> Vec<bool> {
+/// points without a list of their own and those whose k-NN ball leaves the region (and is not
+/// proven complete), spread to every point whose list holds a tainted one.
+fn taint(run: &CloudRun, g: &Graph, hops: usize) -> Vec<bool> {
+    let (pos, lists, radii) = (&g.frame.positions, &g.lists, &g.radii);
+    let unlisted = |i: usize| g.listed.get(i).is_some_and(|l| !l);
     let Some(region) = run.region.as_ref() else {
-        return vec![false; pos.len()];
+        return (0..pos.len()).map(unlisted).collect();
     };
     let mut t: Vec<bool> = (0..pos.len())
         .into_par_iter()
         .map(|i| {
-            !inside(region, pos[i], radii[i]) && !run.complete.is_some_and(|c| c(pos[i], radii[i]))
+            unlisted(i)
+                || (!inside(region, pos[i], radii[i])
+                    && !run.complete.is_some_and(|c| c(pos[i], radii[i])))
         })
         .collect();
     for _ in 0..hops {
@@ -346,7 +367,7 @@ pub fn run(
     globals: &Globals,
 ) -> Result<CloudResult, DenoiseError> {
     let timer = Timer::start();
-    let g = graph(run, params.k())?;
+    let g = graph(run, params.k(), reach(params))?;
     run_on(run, params, globals, g, timer)
 }
 
@@ -361,15 +382,16 @@ fn run_on(
 ) -> Result<CloudResult, DenoiseError> {
     let mut stats = Stats::default();
     let k = params.k();
+    let tainted = taint(run, &g, reach(params));
     let Graph {
         frame,
         lists,
         radii,
         index,
         isolated,
+        listed: _,
     } = g;
     let n = frame.positions.len();
-    let tainted = taint(run, &frame.positions, &lists, &radii, reach(params));
     let duplicate: Vec<bool> = (0..n)
         .into_par_iter()
         .map(|j| is_duplicate(&frame.positions, &lists, &frame.ties, j))
@@ -581,16 +603,17 @@ pub fn run_all(positions: &[DVec3], params: &Params) -> Result<AllResult, Denois
         region: None,
         isolation: super::isolation::of_cloud(&pts, &ties, origin, params.k()),
         complete: None,
+        wanted: None,
     };
     let timer = Timer::start();
     let k = params.k();
     let kg = globals_k(params);
     let result = if !needs_globals(params) {
-        run_on(&r, params, &Globals::default(), graph(&r, k)?, timer)?
+        run_on(&r, params, &Globals::default(), graph(&r, k, 0)?, timer)?
     } else if k >= kg {
         // One k-NN pass serves both: the pre-pass reads the first kg members of each list,
         // which are its kg-NN list to the bit (see `partial_of`).
-        let g = graph(&r, k).map_err(|e| match e {
+        let g = graph(&r, k, 0).map_err(|e| match e {
             // As the separate pre-pass would fail first, on its kg.
             DenoiseError::Neighbours(NeighboursError::TooFewPoints { points, .. })
                 if points < kg =>
@@ -603,7 +626,7 @@ pub fn run_all(positions: &[DVec3], params: &Params) -> Result<AllResult, Denois
         run_on(&r, params, &globals, g, timer)?
     } else {
         let globals = globals_partial(&r, params, |_| true)?.0.finish();
-        run_on(&r, params, &globals, graph(&r, k)?, timer)?
+        run_on(&r, params, &globals, graph(&r, k, 0)?, timer)?
     };
     let mut stats = Stats::default();
     stats.merge(&result.stats);
@@ -663,6 +686,7 @@ mod tests {
             region: None,
             isolation: crate::denoise::isolation::of_cloud(&pts, &ties, origin, 16),
             complete: None,
+            wanted: None,
         };
         let guarded = Params::default();
         let bilateral = Params {
@@ -671,7 +695,7 @@ mod tests {
         };
         for params in [guarded, bilateral] {
             let kg = globals_k(&params);
-            let g = graph(&run, params.k()).unwrap();
+            let g = graph(&run, params.k(), 0).unwrap();
             // The far cluster is isolated in the k-list graph but not in the kg one.
             let capped = (0..pts.len())
                 .filter(|&j| g.isolated[j] && g.lists.get(j).len() >= kg)

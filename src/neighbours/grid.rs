@@ -436,14 +436,16 @@ impl Pass<'_> {
 }
 
 /// Runs the grid levels over the points `ids` of `local` (indices into it), starting with cells
-/// of side `cell`. Every point of `ids` appears in exactly one returned [`CellAnswers`], answered
-/// or marked for the tree (NaN).
+/// of side `cell`. Every point of `ids` that `asked` selects (all of them when `None`) appears in
+/// exactly one returned [`CellAnswers`], answered or marked for the tree (NaN); every point of
+/// `ids` is a candidate. A cell without asked points costs nothing beyond its place in the grid.
 ///
 /// # Errors
 /// [`Cancelled`] once `cancel` is set (checked per cell and per query).
 pub(crate) fn all_knn(
     local: &[[f64; 3]],
     ids: Vec<u32>,
+    asked: Option<&[bool]>,
     ties: Option<&[u64]>,
     k: usize,
     cell: f64,
@@ -455,14 +457,23 @@ pub(crate) fn all_knn(
         k,
         cancel,
     };
+    let mut queries: Option<Bits> = asked.map(|a| {
+        let mut b = Bits::new(local.len());
+        for &i in ids.iter().filter(|&&i| a[i as usize]) {
+            b.set(i);
+        }
+        b
+    });
     let mut work = Work {
-        queries: ids.len() as u64,
+        queries: match &queries {
+            Some(q) => ids.iter().filter(|&&i| q.get(i)).count() as u64,
+            None => ids.len() as u64,
+        },
         ..Work::default()
     };
     let mut out: Vec<CellAnswers> = Vec::new();
     let mut ancestors: Vec<Ancestor> = Vec::new();
     // Which points are queries at the current level (`None`: all of the level's points).
-    let mut queries: Option<Bits> = None;
     let mut subset = ids;
     let mut want = cell;
     for depth in 0..MAX_LEVELS {

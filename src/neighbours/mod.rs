@@ -30,6 +30,7 @@
 
 pub mod brute;
 mod cancel;
+mod closure;
 mod grid;
 mod mesh;
 
@@ -403,6 +404,20 @@ impl KnnIndex {
         &self,
         k: usize,
     ) -> Result<(Neighbourhoods, Vec<f64>, KnnWork), NeighboursError> {
+        self.knn_asked(k, None)
+    }
+
+    /// [`KnnIndex::knn_all_counted`] for the indexed points `asked` selects (every one when
+    /// `None`); the others get empty lists and radius 0. Every indexed point is a candidate, so an
+    /// asked point's list and radius are [`KnnIndex::knn_all`]'s.
+    ///
+    /// # Errors
+    /// As [`KnnIndex::knn_all`].
+    pub(crate) fn knn_asked(
+        &self,
+        k: usize,
+        asked: Option<&[bool]>,
+    ) -> Result<(Neighbourhoods, Vec<f64>, KnnWork), NeighboursError> {
         if k == 0 {
             return Err(NeighboursError::ZeroK);
         }
@@ -420,14 +435,16 @@ impl KnnIndex {
         let ids: Vec<u32> = (0..n as u32)
             .filter(|&i| indexable(self.local[i as usize]))
             .collect();
-        let (cells, mut work) = grid::all_knn(&self.local, ids, self.ties(), k, cell, cancel)
-            .map_err(|_| NeighboursError::Cancelled)?;
+        let (cells, mut work) =
+            grid::all_knn(&self.local, ids, asked, self.ties(), k, cell, cancel)
+                .map_err(|_| NeighboursError::Cancelled)?;
+        let asked = |i: usize| asked.is_none_or(|a| a[i]);
         let mut offsets = Vec::with_capacity(n + 1);
         offsets.push(0u32);
         let mut total = 0u32;
         let mut listed = Vec::with_capacity(n);
         for (i, p) in self.local.iter().enumerate() {
-            if indexable(*p) {
+            if indexable(*p) && asked(i) {
                 total += k as u32;
                 listed.push(i as u32);
             }
@@ -500,7 +517,7 @@ impl KnnIndex {
             }
         }
         for (i, l) in loc.iter().enumerate() {
-            if l.0 == TREE && indexable(self.local[i]) {
+            if l.0 == TREE && indexable(self.local[i]) && asked(i) {
                 radii[i] = resolved[l.1 as usize].1;
             }
         }

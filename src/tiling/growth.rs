@@ -398,6 +398,7 @@ fn run_kernel<V>(
     let occupancy = budget.occupancy;
     let positions: Vec<DVec3> = pts.iter().map(|p| p.p).collect();
     let ties: Vec<u64> = pts.iter().map(|p| p.index).collect();
+    let owned: Vec<bool> = pts.iter().map(|p| p.owned).collect();
     // Balls crossing the region are complete when the cells they touch hold nothing more.
     let loaded = std::sync::OnceLock::new();
     let complete = |p: DVec3, r2: f64| {
@@ -416,6 +417,7 @@ fn run_kernel<V>(
         region: Some(region),
         isolation: plan.isolation,
         complete: occupancy.map(|_| &complete as &(dyn Fn(DVec3, f64) -> bool + Sync)),
+        wanted: Some(&owned),
     };
     f(pts, &run)
 }

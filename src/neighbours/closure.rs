@@ -1,0 +1,161 @@
+//! k-NN lists of the points a few hops from some seeds: what a run needs when only the seeds'
+//! results are wanted and those depend on `hops` hops of the k-NN graph.
+//!
+//! ```text
+//!   round 0: lists of the seeds
+//!   round h: lists of the members of round h − 1's lists that have none yet   (h = 1 … hops)
+//!   the rest: no list of their own (only themselves, radius 0), reported as not listed
+//! ```
+//!
+//! A tile loads its core and a halo wide enough for its farthest outlier's ball, and the kernel
+//! only needs exact results for the core; the hops of a surface reach a thin shell of that halo.
+//! Every indexed point stays a candidate, so a listed point's list is the one
+//! [`KnnIndex::knn_all`] gives it, bit for bit. Once the listed points are most of the cloud, one
+//! last round lists all the rest (a round costs a grid pass, whatever its share).
+
+use super::{KnnIndex, Neighbourhoods, NeighboursError};
+
+/// Once this share of the points is listed, the next round lists every point.
+const ALL_SHARE: f64 = 0.5;
+
+impl KnnIndex {
+    /// k-NN lists of every point within `hops` hops of a seed (`seeds[i]`), as
+    /// [`KnnIndex::knn_all`] gives them; a point that is not listed (third value false) has the
+    /// list `[itself]` and radius 0, and whatever depends on it must be treated as unknown.
+    ///
+    /// # Errors
+    /// As [`KnnIndex::knn_all`].
+    pub fn knn_near(
+        &self,
+        k: usize,
+        seeds: &[bool],
+        hops: usize,
+    ) -> Result<(Neighbourhoods, Vec<f64>, Vec<bool>), NeighboursError> {
+        let n = seeds.len();
+        let mut listed = vec![false; n];
+        let mut ask: Vec<bool> = seeds.to_vec();
+        // Each listed point's list (start and end in `found`) and radius, in the order found.
+        let mut found: Vec<u32> = Vec::new();
+        let mut entries: Vec<(u32, u32, f64)> = Vec::new();
+        let mut slot = vec![u32::MAX; n];
+        let mut count = 0usize;
+        for round in 0..=hops {
+            let all = count as f64 >= ALL_SHARE * n as f64;
+            if all {
+                for (a, l) in ask.iter_mut().zip(&listed) {
+                    *a = !*l;
+                }
+            }
+            let (nb, radii, _) = self.knn_asked(k, Some(&ask))?;
+            let mut next = vec![false; n];
+            for i in (0..n).filter(|&i| ask[i]) {
+                listed[i] = true;
+                slot[i] = entries.len() as u32;
+                count += 1;
+                let list = nb.get(i);
+                let start = found.len() as u32;
+                found.extend_from_slice(list);
+                entries.push((start, found.len() as u32, radii[i]));
+                for &u in list {
+                    next[u as usize] = true;
+                }
+            }
+            drop((nb, radii));
+            if all {
+                break;
+            }
+            for (a, (nx, l)) in ask.iter_mut().zip(next.iter().zip(&listed)) {
+                *a = *nx && !*l;
+            }
+            if round == hops || !ask.iter().any(|&a| a) {
+                break;
+            }
+        }
+        // One CSR of every round's lists.
+        let mut offsets = Vec::with_capacity(n + 1);
+        offsets.push(0u32);
+        let mut indices = Vec::new();
+        let mut radii = vec![0.0; n];
+        for i in 0..n {
+            match entries.get(slot[i] as usize) {
+                Some(&(a, b, r)) => {
+                    indices.extend_from_slice(&found[a as usize..b as usize]);
+                    radii[i] = r;
+                }
+                None => indices.push(i as u32),
+            }
+            offsets.push(indices.len() as u32);
+        }
+        Ok((Neighbourhoods { offsets, indices }, radii, listed))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use glam::DVec3;
+
+    use super::*;
+
+    /// A plane of 60 × 60 points with a dense blob on it, in a fixed order.
+    fn cloud() -> Vec<DVec3> {
+        let mut pts: Vec<DVec3> = (0..3600)
+            .map(|i| DVec3::new((i % 60) as f64, (i / 60) as f64, 0.0))
+            .collect();
+        pts.extend((0..400).map(|i| {
+            let a = i as f64 * 2.399;
+            DVec3::new(
+                30.0 + 0.3 * a.cos(),
+                30.0 + 0.3 * a.sin(),
+                0.01 * (i % 7) as f64,
+            )
+        }));
+        pts
+    }
+
+    #[test]
+    fn listed_points_get_the_all_points_lists_and_the_rest_only_themselves() {
+        let pts = cloud();
+        let index = KnnIndex::build(&pts, DVec3::ZERO).unwrap();
+        let (all, all_r) = index.knn_all(8).unwrap();
+        // Seeds: a 4 × 4 patch in a corner, far from the blob.
+        let seeds: Vec<bool> = (0..pts.len())
+            .map(|i| i < 3600 && i % 60 < 4 && i / 60 < 4)
+            .collect();
+        for hops in 0..4 {
+            let (nb, radii, listed) = index.knn_near(8, &seeds, hops).unwrap();
+            // Exactly the points within `hops` hops of a seed are listed.
+            let mut want = seeds.clone();
+            for _ in 0..hops {
+                let mut next = want.clone();
+                for i in (0..pts.len()).filter(|&i| want[i]) {
+                    for &u in all.get(i) {
+                        next[u as usize] = true;
+                    }
+                }
+                want = next;
+            }
+            assert_eq!(listed, want, "hops {hops}");
+            assert!(listed.iter().filter(|&&l| l).count() < 400, "hops {hops}");
+            for i in 0..pts.len() {
+                if listed[i] {
+                    assert_eq!(nb.get(i), all.get(i), "point {i}, hops {hops}");
+                    assert_eq!(radii[i].to_bits(), all_r[i].to_bits());
+                } else {
+                    assert_eq!(nb.get(i), &[i as u32]);
+                    assert_eq!(radii[i], 0.0);
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn past_half_the_points_every_point_is_listed() {
+        let pts = cloud();
+        let index = KnnIndex::build(&pts, DVec3::ZERO).unwrap();
+        let (all, _) = index.knn_all(8).unwrap();
+        let seeds: Vec<bool> = (0..pts.len()).map(|i| i % 3 != 0).collect();
+        let (nb, _, listed) = index.knn_near(8, &seeds, 5).unwrap();
+        assert!(listed.iter().all(|&l| l));
+        assert_eq!(nb, all);
+    }
+}
