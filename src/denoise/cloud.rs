@@ -710,6 +710,50 @@ mod tests {
     }
 
     #[test]
+    fn issue16_few_wanted_points_keep_their_results_and_the_rest_are_not_exact() {
+        let pts = issue9_cloud();
+        let ties: Vec<u64> = (0..pts.len() as u64).map(|i| 3 * i + 1).collect();
+        let origin = crate::denoise::origin_of(&pts);
+        let bb = Aabb::from_points(&pts);
+        let whole = CloudRun {
+            positions: &pts,
+            ties: &ties,
+            origin,
+            // Holds every point with room: every result of the whole run is exact.
+            region: Some(Aabb {
+                min: bb.min - DVec3::splat(bb.diagonal()),
+                max: bb.max + DVec3::splat(bb.diagonal()),
+            }),
+            isolation: crate::denoise::isolation::of_cloud(&pts, &ties, origin, 16),
+            complete: None,
+            wanted: None,
+        };
+        // A 12 × 12 corner of the 60 × 60 plane: 4 % of the points, so lists are computed
+        // only within reach of it.
+        let wanted: Vec<bool> = (0..pts.len())
+            .map(|i| i < 3600 && i / 60 < 12 && i % 60 < 12)
+            .collect();
+        let few = CloudRun {
+            wanted: Some(&wanted),
+            ..whole
+        };
+        let params = Params::default();
+        let all = run(&whole, &params, &Globals::default()).unwrap();
+        assert!(all.exact.iter().all(|&e| e));
+        let part = run(&few, &params, &Globals::default()).unwrap();
+        // Unlisted points, and what depends on them, are not exact; the rest equal the whole run.
+        let exact = part.exact.iter().filter(|&&e| e).count();
+        assert!(exact < pts.len() / 2, "{exact} of {} exact", pts.len());
+        assert!(
+            (0..pts.len()).any(|i| wanted[i] && part.exact[i]),
+            "no wanted point exact"
+        );
+        for i in (0..pts.len()).filter(|&i| part.exact[i]) {
+            assert_eq!(part.positions[i], all.positions[i], "point {i}");
+        }
+    }
+
+    #[test]
     fn a_set_cancel_flag_stops_between_passes() {
         assert!(check_cancel().is_ok());
         let flag = Arc::new(AtomicBool::new(true));
