@@ -356,6 +356,12 @@ impl Header {
         }
         // A header without a WIDTH line derives it from POINTS; a missing POINTS line is derived
         // from WIDTH × HEIGHT: both stay consistent after the rewrites above.
+        if !out.ends_with(b"\n") {
+            // A file that ends right after `DATA kind` (no terminator, so no points): the point
+            // data written after the copied line would run into it, and the file could not be
+            // read back (found by the pcd fuzz target, issue 15).
+            out.extend_from_slice(self.eol().bytes());
+        }
         out
     }
 
@@ -667,6 +673,21 @@ mod io_pcd {
         assert!(out.contains("POINTS 3\nDATA binary\n"), "{out}");
         let again = parse(&out).unwrap();
         assert_eq!(again.fields.len(), 5);
+    }
+
+    #[test]
+    fn issue15_a_data_line_without_terminator_is_terminated_when_written() {
+        let text = "FIELDS x y z\r\nSIZE 4 4 4\r\nTYPE F F F\r\nWIDTH 0\r\nDATA binary_compressed";
+        let h = parse(text).unwrap();
+        assert_eq!(h.points, 0);
+        let out = h.render(0, PcdData::BinaryCompressed, None);
+        assert!(out.ends_with(b"DATA binary_compressed\n"), "{out:?}");
+        let mut written = out.clone();
+        written.extend_from_slice(&[0u8; 8]);
+        let mut r = written.as_slice();
+        let again = read_header(&mut r, Path::new("t.pcd")).unwrap();
+        assert_eq!(again.data, PcdData::BinaryCompressed);
+        assert_eq!(r, &[0u8; 8]);
     }
 
     #[test]
