@@ -63,9 +63,11 @@ pub enum Command {
 /// directory so workers need none.
 #[derive(Debug, Args)]
 pub struct PlanArgs {
-    /// Input file (a file every task can read; not a stream).
+    /// Input file (not a stream): on a file system every task can read, or anywhere for an S3
+    /// work directory, which receives a copy.
     pub input: PathBuf,
-    /// The work directory: a path or file:///abs/path, on a file system every task can reach.
+    /// The work directory: a path or file:///abs/path on a file system every task can reach, or
+    /// s3://bucket/prefix (endpoint and credentials from the AWS_* environment).
     #[arg(long)]
     pub work: String,
     /// The format, denoising, thread and memory flags (as `qemd denoise`; the output format is

@@ -17,14 +17,17 @@
 //! * [`jobs`]: the service's job store (SQLite), uploads, scheduler and the one bridge from the
 //!   async runtime to rayon; nothing before it knows about tokio.
 //! * [`api`]: the HTTP API (axum): routes, uploads, downloads, errors, OpenAPI, server.
+//! * [`objects`]: object-store (S3) work directories for the scale-out commands: a task's local
+//!   mirror of the objects it reads and writes (its own tokio runtime).
 //! * [`config`], [`cli`]: configuration (figment) and the `qemd` command line.
 //!
 //! # Features
 //!
-//! `default = ["cli", "service", "eval"]`. Without features the crate is `points`, `io`,
+//! `default = ["cli", "service", "eval", "s3"]`. Without features the crate is `points`, `io`,
 //! `geometry`, `neighbours`, `denoise`, `tiling` and `pipeline`: `eval` adds the evaluation layer
 //! (plotters, rustfft), `service` adds `jobs` and `api` (tokio, axum, rusqlite) and `cli` adds
-//! `cli` and `config` (clap, figment); the `qemd` binary needs all three.
+//! `cli` and `config` (clap, figment), and `s3` adds `objects` (object_store, tokio); the `qemd`
+//! binary needs all four.
 
 #![warn(missing_docs)]
 #![forbid(unsafe_code)]
@@ -43,6 +46,8 @@ pub mod io;
 #[cfg(feature = "service")]
 pub mod jobs;
 pub mod neighbours;
+#[cfg(feature = "s3")]
+pub mod objects;
 pub mod pipeline;
 pub mod points;
 pub mod tiling;

@@ -97,10 +97,14 @@ fn plan(a: PlanArgs) -> Result<()> {
         spec: a.run.spec.resolve(config.outlier_alpha)?,
         memory_budget: a.run.memory_budget.unwrap_or(config.memory_budget).as_u64(),
         tile_points: a.run.tile_points,
+        stored_as: None,
     };
-    let progress = progress_for(a.quiet);
-    let planned = scaleout::plan(&work, &req, progress.clone(), cancel_flag()?);
-    progress.finish();
+    let hooks = scaleout::Hooks {
+        progress: progress_for(a.quiet),
+        cancel: cancel_flag()?,
+    };
+    let planned = qem_denoise::objects::plan(&work, &req, &hooks);
+    hooks.progress.finish();
     let planned = planned?;
     let tasks = planned.job.tasks();
     if a.json {
@@ -135,14 +139,14 @@ fn plan(a: PlanArgs) -> Result<()> {
 }
 
 fn worker(a: WorkerArgs) -> Result<()> {
-    use qem_denoise::pipeline::scaleout::{self, Hooks, WorkUrl};
+    use qem_denoise::pipeline::scaleout::{Hooks, WorkUrl};
     init_threads(a.threads)?;
     let work = WorkUrl::parse(&a.work)?;
     let hooks = Hooks {
         progress: progress_for(a.quiet || a.json),
         cancel: cancel_flag()?,
     };
-    let r = scaleout::run_task(
+    let r = qem_denoise::objects::run_task(
         &work,
         a.phase,
         (a.index, a.of),
@@ -170,14 +174,14 @@ fn worker(a: WorkerArgs) -> Result<()> {
 }
 
 fn finish(a: FinishArgs) -> Result<()> {
-    use qem_denoise::pipeline::scaleout::{self, Hooks, WorkUrl};
+    use qem_denoise::pipeline::scaleout::{Hooks, WorkUrl};
     init_threads(a.threads)?;
     let work = WorkUrl::parse(&a.work)?;
     let hooks = Hooks {
         progress: progress_for(a.quiet),
         cancel: cancel_flag()?,
     };
-    let f = scaleout::finish(&work, &a.output, a.format, &hooks);
+    let f = qem_denoise::objects::finish(&work, &a.output, a.format, &hooks);
     hooks.progress.finish();
     let f = f?;
     if !a.quiet {
@@ -206,9 +210,9 @@ fn finish(a: FinishArgs) -> Result<()> {
 }
 
 fn status(a: StatusArgs) -> Result<()> {
-    use qem_denoise::pipeline::scaleout::{self, WorkUrl};
+    use qem_denoise::pipeline::scaleout::WorkUrl;
     let work = WorkUrl::parse(&a.work)?;
-    let s = scaleout::status(&work)?;
+    let s = qem_denoise::objects::status(&work)?;
     if a.json {
         println!("{}", serde_json::to_string_pretty(&s)?);
         return Ok(());

@@ -268,10 +268,6 @@ fn issue11_a_work_directory_keeps_its_job() {
             ],
             "not below the task count",
         ),
-        (
-            vec!["status", "--work", "s3://bucket/job"],
-            "not supported yet",
-        ),
     ] {
         let o = qemd(&args);
         assert!(!o.status.success(), "{args:?}");

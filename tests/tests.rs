@@ -22,6 +22,7 @@ mod raw_bin;
 mod real_data;
 mod reliability;
 mod resume;
+mod s3;
 mod scaleout;
 mod seams;
 mod server;

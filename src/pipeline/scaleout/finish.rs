@@ -47,9 +47,9 @@ pub fn finish(
     format: Option<Format>,
     hooks: &Hooks,
 ) -> Result<Finished, ScaleoutError> {
-    let dir = work.path();
+    let dir = work.local()?;
     let frozen = FrozenJob::load(dir)?;
-    if let (Ok(a), Ok(b)) = (frozen.input.canonicalize(), output.canonicalize())
+    if let (Ok(a), Ok(b)) = (frozen.input_path(dir).canonicalize(), output.canonicalize())
         && a == b
     {
         return Err(PipelineError::SameFile {

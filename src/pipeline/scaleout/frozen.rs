@@ -84,9 +84,10 @@ impl InputId {
 pub struct FrozenJob {
     /// [`VERSION`].
     pub version: u32,
-    /// The input, absolute.
+    /// The input: absolute, or relative to the work directory when the job carries a copy of its
+    /// input (an object-store job, see [`FrozenJob::input_path`]).
     pub input: PathBuf,
-    /// Its identity when planned.
+    /// Its identity when planned (for a copy in the work directory, its length alone).
     pub input_id: InputId,
     /// The input format when given (else told from the extension, as `qemd denoise` does).
     pub input_format: Option<StoredFormat>,
@@ -151,11 +152,21 @@ impl FrozenJob {
         commit_json(&dir.join(JOB_FILE), self, true)
     }
 
+    /// Where a task in the work directory `dir` reads the input: the absolute path, or the copy
+    /// the job carries in `dir`.
+    pub fn input_path(&self, dir: &Path) -> PathBuf {
+        if self.input.is_absolute() {
+            self.input.clone()
+        } else {
+            dir.join(&self.input)
+        }
+    }
+
     /// The job a task runs: the frozen input and spec, the output into the work directory.
     pub fn job(&self, dir: &Path) -> Job {
         let out = self.output_format.format();
         Job {
-            input: self.input.clone(),
+            input: self.input_path(dir),
             output: output_path(dir, out),
             input_format: self.input_format.map(StoredFormat::format),
             output_format: Some(out),
@@ -202,11 +213,16 @@ impl FrozenJob {
     ///
     /// # Errors
     /// As said, and an input that cannot be read.
-    pub fn check_input(&self) -> Result<(), ScaleoutError> {
-        let now = InputId::of(&self.input)?;
+    pub fn check_input(&self, dir: &Path) -> Result<(), ScaleoutError> {
+        let path = self.input_path(dir);
+        let mut now = InputId::of(&path)?;
+        if !self.input.is_absolute() {
+            // A copy in the work directory (downloaded anew by each task) has no stable time.
+            now.modified_ns = 0;
+        }
         if now != self.input_id {
             return Err(ScaleoutError::InputChanged {
-                path: self.input.clone(),
+                path,
                 detail: format!(
                     "changed since it was planned ({} bytes then, {} now, or a new modification \
                      time); plan the job again in a new work directory",

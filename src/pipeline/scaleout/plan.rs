@@ -26,6 +26,10 @@ pub struct PlanRequest {
     pub memory_budget: u64,
     /// Forced tile size.
     pub tile_points: Option<u64>,
+    /// Where tasks find the input when it is not `input` itself: a path relative to the work
+    /// directory, for a job that carries a copy of its input (an object-store job uploads it
+    /// there). `None`: tasks read `input`, which every task must be able to reach.
+    pub stored_as: Option<PathBuf>,
 }
 
 /// The result of planning.
@@ -73,12 +77,25 @@ pub fn plan(
             "a mesh runs in memory on one node (its k-rings need every face); use qemd denoise",
         ));
     }
-    let dir = work.path();
-    let input_id = InputId::of(&input)?;
+    let dir = work.local()?;
+    let mut input_id = InputId::of(&input)?;
+    let stored = match &req.stored_as {
+        Some(rel) if rel.is_absolute() || rel.as_os_str().is_empty() => {
+            return Err(unsupported(
+                "the input's copy is named relative to the work directory",
+            ));
+        }
+        Some(rel) => {
+            // Each task downloads its own copy: only the length identifies it.
+            input_id.modified_ns = 0;
+            rel.clone()
+        }
+        None => input.clone(),
+    };
     let input_format = req.input_format.map(StoredFormat::from);
     let output_format = StoredFormat::from(req.output_format.unwrap_or(info.format));
     if let Some(e) = existing_job(dir)? {
-        let same = e.input == input
+        let same = e.input == stored
             && e.input_id == input_id
             && e.input_format == input_format
             && e.output_format == output_format
@@ -122,7 +139,7 @@ pub fn plan(
     let plan = plan_phase::plan(&job, &opts, &info, &limits)?;
     let frozen = FrozenJob {
         version: VERSION,
-        input,
+        input: stored,
         input_id,
         input_format,
         output_format,

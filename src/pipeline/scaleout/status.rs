@@ -55,7 +55,7 @@ pub struct Status {
 /// # Errors
 /// A work directory without a readable plan.
 pub fn status(work: &WorkUrl) -> Result<Status, ScaleoutError> {
-    let dir = work.path();
+    let dir = work.local()?;
     let frozen = FrozenJob::load(dir)?;
     let w = WorkDir::persistent(dir).map_err(|e| crate::io::IoError::io(dir, e))?;
     let tiles = frozen.plan.tiles.len();

@@ -1,5 +1,8 @@
-//! The address of a work directory: a local path, or a `file://` URL (`file:///abs/path`).
-//! Object stores (`s3://bucket/prefix`) are refused with a message until they are supported.
+//! The address of a work directory: a local path, a `file://` URL (`file:///abs/path`), or an S3
+//! prefix (`s3://bucket/prefix`). The pipeline runs on local directories only; an S3 work
+//! directory is mirrored into local scratch by the object-store layer (`crate::objects`, feature
+//! `s3`), which hands the pipeline the scratch directory. Other object stores (`gs://`, `az://`)
+//! are refused with a message.
 
 use std::path::{Path, PathBuf};
 
@@ -10,6 +13,13 @@ use super::ScaleoutError;
 pub enum WorkUrl {
     /// A directory on a file system every task can reach (absolute).
     Local(PathBuf),
+    /// A prefix in an S3 bucket (endpoint and credentials from the `AWS_*` environment).
+    S3 {
+        /// The bucket.
+        bucket: String,
+        /// The key prefix, without leading or trailing `/` (may be empty).
+        prefix: String,
+    },
 }
 
 impl WorkUrl {
@@ -48,18 +58,47 @@ impl WorkUrl {
                 let decoded = percent_decode(path).ok_or_else(|| bad("malformed %-escape"))?;
                 Ok(WorkUrl::Local(PathBuf::from(decoded)))
             }
-            "s3" | "gs" | "az" | "azure" => Err(bad(
-                "object-store work directories are not supported yet; use a shared file system \
-                 path or file:// URL",
+            "s3" => {
+                let (bucket, prefix) = rest.split_once('/').unwrap_or((rest, ""));
+                let valid =
+                    |c: char| c.is_ascii_lowercase() || c.is_ascii_digit() || c == '-' || c == '.';
+                if bucket.len() < 3 || bucket.len() > 63 || !bucket.chars().all(valid) {
+                    return Err(bad(
+                        "an S3 work directory is s3://bucket/prefix, with a bucket name of 3 to 63 \
+                         lower-case letters, digits, '-' or '.'",
+                    ));
+                }
+                let prefix = prefix.trim_matches('/');
+                if prefix.split('/').any(|s| s == "." || s == "..") || prefix.contains("//") {
+                    return Err(bad("an S3 prefix has no empty, '.' or '..' segments"));
+                }
+                Ok(WorkUrl::S3 {
+                    bucket: bucket.to_string(),
+                    prefix: prefix.to_string(),
+                })
+            }
+            "gs" | "az" | "azure" => Err(bad(
+                "only S3 object stores are built in (s3://bucket/prefix); use S3, a shared file \
+                 system path or a file:// URL",
             )),
             _ => Err(bad("unknown scheme (expected a path or file:///abs/path)")),
         }
     }
 
     /// The local directory.
-    pub fn path(&self) -> &Path {
+    ///
+    /// # Errors
+    /// [`ScaleoutError::Url`] for an object store: the pipeline runs on its local mirror
+    /// (`crate::objects`).
+    pub fn local(&self) -> Result<&Path, ScaleoutError> {
         match self {
-            WorkUrl::Local(p) => p,
+            WorkUrl::Local(p) => Ok(p),
+            WorkUrl::S3 { .. } => Err(ScaleoutError::Url {
+                url: self.to_string(),
+                detail: "an object-store work directory is run through its local mirror (a build \
+                         with the `s3` feature)"
+                    .into(),
+            }),
         }
     }
 }
@@ -68,6 +107,8 @@ impl std::fmt::Display for WorkUrl {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
             WorkUrl::Local(p) => write!(f, "{}", p.display()),
+            WorkUrl::S3 { bucket, prefix } if prefix.is_empty() => write!(f, "s3://{bucket}"),
+            WorkUrl::S3 { bucket, prefix } => write!(f, "s3://{bucket}/{prefix}"),
         }
     }
 }
@@ -110,12 +151,28 @@ mod tests {
             WorkUrl::Local("/abs/w".into())
         );
         let rel = WorkUrl::parse("rel/w").unwrap();
-        assert!(rel.path().is_absolute() && rel.path().ends_with("rel/w"));
+        let rel = rel.local().unwrap();
+        assert!(rel.is_absolute() && rel.ends_with("rel/w"));
+        let s3 = WorkUrl::parse("s3://my-bucket/jobs/a/").unwrap();
+        assert_eq!(
+            s3,
+            WorkUrl::S3 {
+                bucket: "my-bucket".into(),
+                prefix: "jobs/a".into()
+            }
+        );
+        assert_eq!(s3.to_string(), "s3://my-bucket/jobs/a");
+        assert!(s3.local().is_err());
+        assert_eq!(WorkUrl::parse("s3://bkt").unwrap().to_string(), "s3://bkt");
         for bad in [
             "",
             "file://host/x",
             "file://x",
             "s3://b/p",
+            "s3://Big/p",
+            "s3://bkt/a/../b",
+            "s3://bkt/a//b",
+            "gs://b/p",
             "http://x/y",
             "file:///a%2",
         ] {

@@ -217,7 +217,7 @@ pub(super) fn stitch_into(
     hooks: &Hooks,
 ) -> Result<stitch::Stitched, ScaleoutError> {
     let ctx = Ctx::new(dir, hooks)?;
-    ctx.frozen.check_input()?;
+    ctx.frozen.check_input(dir)?;
     let knn = ctx.knn_sums(Phase::Stitch)?;
     let plan = &ctx.frozen.plan;
     let threshold = outliers::threshold(job, plan, &ctx.work, &knn)?;
@@ -244,7 +244,7 @@ pub fn run_task(
     hooks: &Hooks,
 ) -> Result<TaskReport, ScaleoutError> {
     let start = Instant::now();
-    let dir = work.path();
+    let dir = work.local()?;
     let ctx = Ctx::new(dir, hooks)?;
     let task = resolve_index(index, of, ctx.frozen.tasks_of(phase), env)?;
     let tiles = ctx.frozen.plan.tiles.len();
@@ -264,7 +264,7 @@ pub fn run_task(
             if ctx.work.committed_partition(&ctx.frozen.plan).is_some() {
                 r.skipped = 1;
             } else {
-                ctx.frozen.check_input()?;
+                ctx.frozen.check_input(dir)?;
                 let limits = ctx.frozen.limits(dir);
                 partition::partition(&ctx.job, &ctx.opts, &ctx.frozen.plan, &limits, &ctx.work)?;
                 r.done = 1;

