@@ -57,6 +57,9 @@ pub enum Command {
     Finish(FinishArgs),
     /// Scale-out: each phase's progress, from the committed files of the work directory.
     Status(StatusArgs),
+    /// Scale-out: Kubernetes manifests for a planned job, one Indexed Job per phase (apply them
+    /// in order, each after the previous one completed).
+    K8s(K8sArgs),
 }
 
 /// Flags of `qemd plan`: the input and the denoising flags of `qemd denoise`, frozen in the work
@@ -147,6 +150,55 @@ pub struct StatusArgs {
     /// Print JSON.
     #[arg(long)]
     pub json: bool,
+}
+
+/// Flags of `qemd k8s`; the defaults are [`crate::k8s`]'s.
+#[derive(Debug, Args)]
+pub struct K8sArgs {
+    /// The work directory of a planned job (s3://bucket/prefix).
+    #[arg(long)]
+    pub work: String,
+    /// Write one file per phase into this directory (1-partition.yaml …); default: every
+    /// manifest to standard output as one YAML stream.
+    #[arg(short, long)]
+    pub output: Option<PathBuf>,
+    /// Prefix of the Job names (`NAME-partition` …) [default: qemd- and a hash of the URL].
+    #[arg(long)]
+    pub name: Option<String>,
+    /// Namespace of the Jobs [default: unset, kubectl's current one].
+    #[arg(long)]
+    pub namespace: Option<String>,
+    /// Container image whose entrypoint is qemd (docker/Dockerfile).
+    #[arg(long, default_value = crate::k8s::DEFAULT_IMAGE)]
+    pub image: String,
+    /// Secret whose keys become the pods' environment (AWS_ACCESS_KEY_ID, AWS_SECRET_ACCESS_KEY,
+    /// AWS_REGION, AWS_ENDPOINT_URL …).
+    #[arg(long, default_value = crate::k8s::DEFAULT_SECRET)]
+    pub secret: String,
+    /// Pods of one phase at a time (capped at the phase's task count).
+    #[arg(long, default_value_t = crate::k8s::DEFAULT_PARALLELISM)]
+    pub parallelism: u32,
+    /// Retries of one index before its Job fails.
+    #[arg(long, default_value_t = crate::k8s::DEFAULT_BACKOFF_PER_INDEX)]
+    pub backoff_per_index: u32,
+    /// Cores per pod: its CPU request and the worker's --threads.
+    #[arg(long, default_value_t = crate::k8s::DEFAULT_CPUS)]
+    pub cpus: u32,
+}
+
+impl K8sArgs {
+    /// The manifest options these flags give.
+    pub fn options(&self) -> crate::k8s::K8sOptions {
+        crate::k8s::K8sOptions {
+            name: self.name.clone(),
+            namespace: self.namespace.clone(),
+            image: self.image.clone(),
+            secret: self.secret.clone(),
+            parallelism: self.parallelism,
+            backoff_per_index: self.backoff_per_index,
+            cpus: self.cpus,
+        }
+    }
 }
 
 /// Flags of `qemd serve`; everything else comes from the configuration.

@@ -19,15 +19,16 @@
 //! * [`api`]: the HTTP API (axum): routes, uploads, downloads, errors, OpenAPI, server.
 //! * [`objects`]: object-store (S3) work directories for the scale-out commands: a task's local
 //!   mirror of the objects it reads and writes (its own tokio runtime).
+//! * [`k8s`]: Kubernetes Indexed Job manifests, one per phase of a planned job.
 //! * [`config`], [`cli`]: configuration (figment) and the `qemd` command line.
 //!
 //! # Features
 //!
-//! `default = ["cli", "service", "eval", "s3"]`. Without features the crate is `points`, `io`,
+//! `default = ["cli", "service", "eval", "s3", "k8s"]`. Without features the crate is `points`, `io`,
 //! `geometry`, `neighbours`, `denoise`, `tiling` and `pipeline`: `eval` adds the evaluation layer
 //! (plotters, rustfft), `service` adds `jobs` and `api` (tokio, axum, rusqlite) and `cli` adds
-//! `cli` and `config` (clap, figment), and `s3` adds `objects` (object_store, tokio); the `qemd`
-//! binary needs all four.
+//! `cli` and `config` (clap, figment), `s3` adds `objects` (object_store, tokio) and `k8s` adds
+//! `k8s` (k8s-openapi); the `qemd` binary needs all five.
 
 #![warn(missing_docs)]
 #![forbid(unsafe_code)]
@@ -45,6 +46,8 @@ pub mod geometry;
 pub mod io;
 #[cfg(feature = "service")]
 pub mod jobs;
+#[cfg(feature = "k8s")]
+pub mod k8s;
 pub mod neighbours;
 #[cfg(feature = "s3")]
 pub mod objects;

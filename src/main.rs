@@ -13,9 +13,9 @@ use clap::Parser;
 use qem_denoise::api::ApiSettings;
 use qem_denoise::api::server::{ServeOptions, Server, shutdown_signal};
 use qem_denoise::cli::{
-    Cli, Command, DemoArgs, DenoiseArgs, EvalArgs, FinishArgs, HarmArgs, NoiseArgs, NoiseUnit,
-    PlanArgs, RenderArgs, ReportArgs, ServeArgs, SpectrumArgs, StatusArgs, SynthArgs, TableArgs,
-    WorkerArgs,
+    Cli, Command, DemoArgs, DenoiseArgs, EvalArgs, FinishArgs, HarmArgs, K8sArgs, NoiseArgs,
+    NoiseUnit, PlanArgs, RenderArgs, ReportArgs, ServeArgs, SpectrumArgs, StatusArgs, SynthArgs,
+    TableArgs, WorkerArgs,
 };
 use qem_denoise::config::{Config, LogFormat};
 use qem_denoise::denoise::{self, Params};
@@ -61,6 +61,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Worker(a) => worker(a),
         Command::Finish(a) => finish(a),
         Command::Status(a) => status(a),
+        Command::K8s(a) => k8s(a),
     }
 }
 
@@ -204,6 +205,38 @@ fn finish(a: FinishArgs) -> Result<()> {
                 "qemd: warning: {} points with NaN, infinite or out-of-range (beyond ±1e12) coordinates were dropped",
                 f.dropped
             );
+        }
+    }
+    Ok(())
+}
+
+fn k8s(a: K8sArgs) -> Result<()> {
+    use qem_denoise::pipeline::scaleout::WorkUrl;
+    use std::io::Write;
+    let work = WorkUrl::parse(&a.work)?;
+    if !matches!(work, WorkUrl::S3 { .. }) {
+        // Refused before the plan is read (the same error the manifests give).
+        qem_denoise::k8s::manifests(&work, |_| 0, 0, &a.options())?;
+    }
+    let job = qem_denoise::objects::job(&work)?;
+    let manifests =
+        qem_denoise::k8s::manifests(&work, |p| job.tasks_of(p), job.memory_budget, &a.options())?;
+    match &a.output {
+        None => {
+            let mut out = std::io::stdout().lock();
+            for m in &manifests {
+                write!(out, "---\n{}", m.to_yaml()?)?;
+            }
+        }
+        Some(dir) => {
+            std::fs::create_dir_all(dir).with_context(|| format!("{}", dir.display()))?;
+            for m in &manifests {
+                let path = dir.join(m.file_name());
+                let mut f = qem_denoise::io::output::AtomicFile::create(&path)?;
+                f.write_all(m.to_yaml()?.as_bytes()).map_err(|e| f.err(e))?;
+                f.commit()?;
+                println!("{}", path.display());
+            }
         }
     }
     Ok(())

