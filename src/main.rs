@@ -225,7 +225,11 @@ fn k8s(a: K8sArgs) -> Result<()> {
         None => {
             let mut out = std::io::stdout().lock();
             for m in &manifests {
-                write!(out, "---\n{}", m.to_yaml()?)?;
+                match write!(out, "---\n{}", m.to_yaml()?) {
+                    // A reader that stopped early (`| head`) is not an error.
+                    Err(e) if e.kind() == std::io::ErrorKind::BrokenPipe => return Ok(()),
+                    r => r?,
+                }
             }
         }
         Some(dir) => {
