@@ -13,13 +13,11 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
-use crate::scaleout::{ok, surface};
+use crate::scaleout::{FLAGS, ok, reference, shuffled, surface};
 use crate::util::s;
 
 /// The bucket every test's server holds.
 const BUCKET: &str = "qemd";
-/// The flags of these tests' jobs (several tiles; outliers flagged), as tests/scaleout.rs.
-const FLAGS: [&str; 4] = ["--tile-points", "1500", "--outliers", "classify"];
 /// The bound on the server's start.
 const START: Duration = Duration::from_secs(90);
 
@@ -201,19 +199,6 @@ fn wait_output(mut child: Child, limit: Duration) -> Output {
     child.wait_with_output().unwrap()
 }
 
-/// `0..n` in a seeded shuffled order.
-fn shuffled(n: u64, seed: u64) -> Vec<u64> {
-    let mut v: Vec<u64> = (0..n).collect();
-    let mut x = seed | 1;
-    for i in (1..v.len()).rev() {
-        x ^= x << 13;
-        x ^= x >> 7;
-        x ^= x << 17;
-        v.swap(i, (x % (i as u64 + 1)) as usize);
-    }
-    v
-}
-
 /// Runs every phase of the job planned in `work` as `n` tasks each (shuffled, the first tiles
 /// task and the stitch run twice), then `qemd finish`; returns the output bytes.
 fn run_job(
@@ -270,11 +255,7 @@ fn issue11_s3_work_directory_writes_the_bytes_of_a_file_one_and_of_denoise() {
     surface(&input, 12_000);
     let before = std::fs::read(&input).unwrap();
 
-    let reference = d.path().join("ref.ply");
-    let mut args = vec!["denoise", s(&input), "-o", s(&reference), "-q"];
-    args.extend(FLAGS);
-    ok(&args);
-    let want = std::fs::read(&reference).unwrap();
+    let want = reference(d.path(), &input);
 
     let file_url = format!("file://{}", d.path().join("work").display());
     let on_file = run_job(&|a| ok(a), &input, &file_url, 3, &d.path().join("file.ply"));
@@ -309,11 +290,7 @@ fn issue11_s3_a_killed_task_rerun_gives_the_same_bytes_and_a_prefix_keeps_its_jo
     let scratch = d.path().join("scratch");
     let input = d.path().join("in.ply");
     surface(&input, 40_000);
-    let reference = d.path().join("ref.ply");
-    let mut args = vec!["denoise", s(&input), "-o", s(&reference), "-q"];
-    args.extend(FLAGS);
-    ok(&args);
-    let want = std::fs::read(&reference).unwrap();
+    let want = reference(d.path(), &input);
 
     let url = format!("s3://{BUCKET}/killed");
     let mut args = vec!["plan", s(&input), "--work", &url, "-q"];
@@ -427,10 +404,7 @@ fn issue11_s3_k8s_manifests_run_as_their_pods_would() {
     let scratch = d.path().join("scratch");
     let input = d.path().join("in.ply");
     surface(&input, 12_000);
-    let reference = d.path().join("ref.ply");
-    let mut args = vec!["denoise", s(&input), "-o", s(&reference), "-q"];
-    args.extend(FLAGS);
-    ok(&args);
+    let want = reference(d.path(), &input);
 
     let url = format!("s3://{BUCKET}/k8s");
     let mut args = vec!["plan", s(&input), "--work", &url, "--json"];
@@ -508,8 +482,5 @@ fn issue11_s3_k8s_manifests_run_as_their_pods_would() {
     }
     let out = d.path().join("out.ply");
     weed.ok(&scratch, &["finish", "--work", &url, "-o", s(&out), "-q"]);
-    assert!(
-        std::fs::read(&out).unwrap() == std::fs::read(&reference).unwrap(),
-        "bytes differ"
-    );
+    assert!(std::fs::read(&out).unwrap() == want, "bytes differ");
 }

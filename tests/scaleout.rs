@@ -36,7 +36,7 @@ pub fn surface(path: &Path, n: usize) {
 }
 
 /// The flags every run of these tests shares (several tiles; outliers flagged).
-const FLAGS: [&str; 4] = ["--tile-points", "1500", "--outliers", "classify"];
+pub const FLAGS: [&str; 4] = ["--tile-points", "1500", "--outliers", "classify"];
 
 /// Runs `qemd ARGS`, asserts it succeeded and returns its standard output.
 pub fn ok(args: &[&str]) -> String {
@@ -72,8 +72,8 @@ fn worker(work: &Path, phase: &str, i: u64, n: u64) {
     ]);
 }
 
-/// `0..n` in a seeded shuffled order.
-fn shuffled(n: u64, seed: u64) -> Vec<u64> {
+/// `0..n` in a seeded shuffled order (tests/s3.rs uses it too).
+pub fn shuffled(n: u64, seed: u64) -> Vec<u64> {
     let mut v: Vec<u64> = (0..n).collect();
     let mut x = seed | 1;
     for i in (1..v.len()).rev() {
@@ -85,8 +85,8 @@ fn shuffled(n: u64, seed: u64) -> Vec<u64> {
     v
 }
 
-/// The reference: `qemd denoise` with the same flags.
-fn reference(d: &Path, input: &Path) -> Vec<u8> {
+/// The reference: `qemd denoise` with the same flags (tests/s3.rs uses it too).
+pub fn reference(d: &Path, input: &Path) -> Vec<u8> {
     let out = d.join("ref.ply");
     let mut args = vec!["denoise", s(input), "-o", s(&out), "-q"];
     args.extend(FLAGS);
