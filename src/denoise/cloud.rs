@@ -570,6 +570,9 @@ pub struct AllResult {
     /// Mean distance to the other members of the point's k-NN list (the outlier statistic);
     /// NaN for points not processed.
     pub knn_mean: Vec<f64>,
+    /// The neighbourhood class of the first cycle (`Structure` code) for the guarded operator,
+    /// [`Structure::Degenerate`] for points not processed; `None` for the other operators.
+    pub structure: Option<Vec<u8>>,
     /// What happened.
     pub stats: Stats,
 }
@@ -635,13 +638,21 @@ pub fn run_all(positions: &[DVec3], params: &Params) -> Result<AllResult, Denois
     stats.non_finite = (positions.len() - pts.len()) as u64;
     let mut out = positions.to_vec();
     let mut knn_mean = vec![f64::NAN; positions.len()];
+    let mut structure = result
+        .structure
+        .as_ref()
+        .map(|_| vec![Structure::Degenerate as u8; positions.len()]);
     for (j, &i) in finite.iter().enumerate() {
         out[i] = result.positions[j];
         knn_mean[i] = result.knn_mean[j];
+        if let (Some(s), Some(r)) = (structure.as_mut(), result.structure.as_ref()) {
+            s[i] = r[j];
+        }
     }
     Ok(AllResult {
         positions: out,
         knn_mean,
+        structure,
         stats,
     })
 }
