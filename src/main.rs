@@ -412,6 +412,26 @@ fn denoise(a: DenoiseArgs) -> Result<()> {
             report.cpu_s,
             report.peak_rss_bytes as f64 / (1024.0 * 1024.0),
         );
+        if report.mode != "mesh" {
+            let c = &s.structure;
+            let classes = if c.surface + c.edge + c.line + c.scatter + c.sparse + c.degenerate > 0 {
+                format!(
+                    "; neighbourhoods: {} surface, {} edge, {} line, {} scatter, {} sparse, {} degenerate",
+                    c.surface, c.edge, c.line, c.scatter, c.sparse, c.degenerate
+                )
+            } else {
+                String::new()
+            };
+            let held = if s.held > 0 {
+                format!(", {} held by --classes", s.held)
+            } else {
+                String::new()
+            };
+            eprintln!(
+                "qemd: displacement p50 {:.3e} / p99 {:.3e} / max {:.3e} (input units); {} bounded, {} isolated{held}{classes}",
+                s.displacement.p50, s.displacement.p99, s.displacement.max, s.bounded, s.isolated
+            );
+        }
         if report.normals == pipeline::NormalsAction::Cleared {
             eprintln!(
                 "qemd: warning: the input's stored normals would be stale after denoising and were cleared (NaN); recompute them downstream"

@@ -188,6 +188,39 @@ fn bad_parameter_is_refused_before_any_io() {
     );
 }
 
+/// Issue 9: `--classes` needs a class field, in memory and tiled, and applies to clouds only.
+#[test]
+fn issue9_classes_without_a_class_field_or_on_a_mesh_are_refused() {
+    let (p, _) = grid(12);
+    let c = case("plain.ply", &ply(&p, &[]));
+    denoise_fails(&c, &["--classes", "2"], "--classes needs a class field");
+    denoise_fails(
+        &c,
+        &["--classes", "2", "--tile-points", "50"],
+        "--classes needs a class field",
+    );
+    let (p, f) = grid(8);
+    let m = case("mesh.ply", &ply(&p, &f));
+    let out = qemd(&["denoise", s(&m.input), "-o", s(&m.output), "--classes", "2"]);
+    assert_fails(
+        &out,
+        Path::new("classes"),
+        "applies to point clouds",
+        m.dir.path(),
+        &[&m.input],
+    );
+    let out = qemd(&[
+        "denoise",
+        s(&m.input),
+        "-o",
+        s(&m.output),
+        "--classes",
+        "2,x",
+    ]);
+    assert_eq!(out.status.code(), Some(2), "clap refuses the value");
+    assert!(String::from_utf8_lossy(&out.stderr).contains("`x` is not a class code"));
+}
+
 #[test]
 fn output_naming_the_input_is_refused() {
     let (p, f) = grid(8);

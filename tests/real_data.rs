@@ -175,3 +175,59 @@ fn issue9_default_does_no_harm_on_real_scans() {
         }
     }
 }
+
+/// Issue 9, `--classes`: on the shared airborne LAS files only ground (class 2) moves; every
+/// other record comes back byte for byte (its coordinates re-quantised to the same integers), in
+/// memory and tiled alike.
+#[test]
+#[ignore = "needs ../shared"]
+fn issue9_classes_move_only_ground_on_real_las() {
+    use qem_denoise::eval::scans::classes_of;
+    let dir = tempfile::tempdir().unwrap();
+    for name in ["4_6_crop.las", "sample_c.las", "32-1-472-150-76.laz"] {
+        let input = Path::new("../shared/data/lidar").join(name);
+        let before = Cloud::read(&input, None).unwrap();
+        let classes = classes_of(&before).unwrap();
+        let mut outputs = Vec::new();
+        for tile_points in [None, Some(5000)] {
+            let out = out_path(dir.path(), &input, &format!("ground_{tile_points:?}"));
+            let mut job = Job::new(&input, &out);
+            job.spec.classes = Some("2".parse().unwrap());
+            let opts = RunOptions {
+                tile_points,
+                ..RunOptions::default()
+            };
+            let r = run(&job, &opts).unwrap_or_else(|e| panic!("{name}: {e}"));
+            let ground = classes.codes.iter().filter(|&&c| c == 2).count() as u64;
+            assert_eq!(
+                r.stats.held,
+                before.positions.len() as u64 - ground,
+                "{name}"
+            );
+            outputs.push(std::fs::read(&out).unwrap());
+            let after = Cloud::read(&out, None).unwrap();
+            let rl = before.info.schema.record_len;
+            let mut moved = 0;
+            for i in 0..before.positions.len() {
+                let (a, b) = (
+                    &before.records[i * rl..][..rl],
+                    &after.records[i * rl..][..rl],
+                );
+                if classes.codes[i] == 2 {
+                    moved += (a != b) as usize;
+                } else {
+                    assert_eq!(
+                        a, b,
+                        "{name}: record {i} (class {}) changed",
+                        classes.codes[i]
+                    );
+                }
+            }
+            assert!(moved > 100, "{name}: {moved} ground points moved");
+        }
+        assert!(
+            outputs[0] == outputs[1],
+            "{name}: tiled differs from in memory"
+        );
+    }
+}

@@ -230,8 +230,9 @@ fn guarded_gains_with_one_update_per_cycle() {
     );
 }
 
-/// `--radius` caps every list in the input's units, the same in every tile: about half the
-/// points of this surface have fewer than 16 points within 0.35 and keep their position.
+/// `--radius` caps every list in the input's units, the same in every tile: this surface has
+/// about 8 points within 0.25 of each point, so some lists are shorter than 16 and still serve,
+/// and the points with fewer than 8 keep their position.
 #[test]
 fn issue9_radius_caps_lists_any_tile_size() {
     let d = tempfile::tempdir().unwrap();
@@ -239,7 +240,7 @@ fn issue9_radius_caps_lists_any_tile_size() {
     let reports = assert_seamless(
         &input,
         &job(Params {
-            radius: Some(0.35),
+            radius: Some(0.25),
             ..Params::default()
         }),
         SIZES,
@@ -250,6 +251,55 @@ fn issue9_radius_caps_lists_any_tile_size() {
         "isolated {} of 4000",
         s.isolated
     );
+    assert!(s.moved > 400, "moved {} of 4000", s.moved);
+}
+
+/// `--classes`: points of other classes keep their position in every tile, as in memory, and
+/// the tiled bytes are the in-memory bytes.
+#[test]
+fn issue9_classes_hold_the_others_any_tile_size() {
+    use std::fmt::Write as _;
+    let d = tempfile::tempdir().unwrap();
+    let pts = surface(3000, 9);
+    // Class 2 on the left half, 5 on the right, 7 for the far points (every 97th).
+    let class = |i: usize, p: DVec3| {
+        if i.is_multiple_of(97) {
+            7
+        } else if p.x < 5.0 {
+            2
+        } else {
+            5
+        }
+    };
+    let mut text = format!(
+        "ply\nformat ascii 1.0\nelement vertex {}\nproperty double x\nproperty double y\n\
+         property double z\nproperty uchar class\nend_header\n",
+        pts.len()
+    );
+    for (i, p) in pts.iter().enumerate() {
+        writeln!(text, "{} {} {} {}", p.x, p.y, p.z, class(i, *p)).unwrap();
+    }
+    let input = d.path().join("classed.ply");
+    std::fs::write(&input, text).unwrap();
+    let mut j = job(Params::default());
+    j.spec.classes = Some("2,7".parse().unwrap());
+    let reports = assert_seamless(&input, &j, SIZES);
+    let held = pts
+        .iter()
+        .enumerate()
+        .filter(|(i, p)| class(*i, **p) == 5)
+        .count();
+    assert_eq!(reports[0].stats.held, held as u64);
+    let out = Cloud::read(&d.path().join("whole.ply"), None).unwrap();
+    let mut moved = 0;
+    for (i, p) in pts.iter().enumerate() {
+        if class(i, *p) == 5 {
+            assert_eq!(out.positions[i], *p, "held point {i} moved");
+        } else {
+            moved += (out.positions[i] != *p) as usize;
+        }
+    }
+    assert!(moved > 1000, "{moved} points of classes 2 and 7 moved");
 }
 
 #[test]

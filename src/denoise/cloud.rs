@@ -202,13 +202,19 @@ pub struct CloudRun<'a> {
     pub origin: DVec3,
     /// The box holding every point the caller has, `None` for the whole cloud.
     pub region: Option<Aabb>,
-    /// The cloud's isolation radius ([`super::isolation::radius`]), the same for every tile;
-    /// `None` caps no list.
+    /// The cap on every list, the same for every tile: the cloud's isolation radius
+    /// ([`super::isolation::radius`]), or the user's `--radius` where smaller
+    /// ([`super::isolation::cap`]); `None` caps no list.
     pub isolation: Option<f64>,
+    /// True when the cap is the user's `--radius`: a capped list still serves with
+    /// [`super::isolation::MIN_LIST`] members or more ([`super::isolation::least_list`]).
+    pub short_lists: bool,
     /// For a tile: the points whose results the caller keeps (its owned ones), `None` for all.
     /// When they are few, only the lists their results depend on are computed, and every other
     /// result is reported not exact.
     pub wanted: Option<&'a [bool]>,
+    /// Points that keep their position but serve as neighbours (`--classes`), `None` for none.
+    pub held: Option<&'a [bool]>,
     /// For a tile: whether the ball (centre, squared radius) holds no point the caller does not
     /// have, for balls that leave `region` (the tiling's occupancy grid proves it). `None`: only
     /// balls inside `region` are complete.
@@ -268,7 +274,10 @@ struct Graph {
     radii: Vec<f64>,
     /// The index the lists come from.
     index: KnnIndex,
-    /// Which points are isolated (capped lists).
+    /// Which lists were capped (shorter than k).
+    capped: Vec<bool>,
+    /// Which points are isolated: capped lists shorter than
+    /// [`super::isolation::least_list`].
     isolated: Vec<bool>,
     /// Which points have their own list (empty: all): the others' results are not exact.
     listed: Vec<bool>,
@@ -295,13 +304,18 @@ fn graph(run: &CloudRun, k: usize, hops: usize) -> Result<Graph, DenoiseError> {
             (lists, radii, Vec::new())
         }
     };
-    let (lists, radii, isolated) =
+    let (lists, radii, capped) =
         super::isolation::cap_lists(lists, radii, run.isolation, |i, u| index.dist2(i, u));
+    let least = super::isolation::least_list(k, run.short_lists);
+    let isolated = (0..lists.len())
+        .map(|i| capped[i] && lists.get(i).len() < least)
+        .collect();
     Ok(Graph {
         frame,
         lists,
         radii,
         index,
+        capped,
         isolated,
         listed,
     })
@@ -388,6 +402,7 @@ fn run_on(
         lists,
         radii,
         index,
+        capped,
         isolated,
         listed: _,
     } = g;
@@ -396,8 +411,8 @@ fn run_on(
         .into_par_iter()
         .map(|j| is_duplicate(&frame.positions, &lists, &frame.ties, j))
         .collect();
-    // The outlier statistic; a capped list counts each missing member at the isolation radius
-    // (so a far outlier scores the radius, not its distance to the scene).
+    // The outlier statistic; a capped list counts each missing member at the cap (so a far
+    // outlier scores the isolation radius, not its distance to the scene).
     let knn_mean: Vec<f64> = (0..n)
         .into_par_iter()
         .map(|j| {
@@ -405,7 +420,7 @@ fn run_on(
             let (mut sum, mut count) = others.fold((0.0, 0usize), |(s, c), &u| {
                 (s + index.dist2(j, u as usize).sqrt(), c + 1)
             });
-            if isolated[j] {
+            if capped[j] {
                 let missing = (k - 1).saturating_sub(count);
                 sum += missing as f64 * run.isolation.unwrap_or(0.0);
                 count += missing;
@@ -438,10 +453,19 @@ fn run_on(
     let mut stayed = vec![0u8; n];
     let mut degenerate = vec![false; n];
     let mut structure = None;
+    let held: Vec<bool> = match run.held {
+        Some(h) => frame.order.iter().map(|&i| h[i as usize]).collect(),
+        None => Vec::new(),
+    };
+    // After every pass (Jacobi: the next pass reads these positions).
     let hold = |cur: &mut Vec<DVec3>, stayed: &mut [u8]| {
         for (j, _) in isolated.iter().enumerate().filter(|(_, i)| **i) {
             cur[j] = frame.positions[j];
             stayed[j] |= stay::ISOLATED;
+        }
+        for (j, _) in held.iter().enumerate().filter(|(_, h)| **h) {
+            cur[j] = frame.positions[j];
+            stayed[j] |= stay::HELD;
         }
     };
     for pass in 0..sched.cycles {
@@ -593,23 +617,40 @@ impl From<AllResult> for super::Output {
 /// # Errors
 /// Fewer finite points than k.
 pub fn run_all(positions: &[DVec3], params: &Params) -> Result<AllResult, DenoiseError> {
+    run_all_with(positions, params, None)
+}
+
+/// [`run_all`] with the points `held` marks (one flag per position, `--classes`) kept in place:
+/// they still serve as neighbours.
+///
+/// # Errors
+/// Fewer finite points than k.
+pub fn run_all_with(
+    positions: &[DVec3],
+    params: &Params,
+    held: Option<&[bool]>,
+) -> Result<AllResult, DenoiseError> {
     let finite: Vec<usize> = (0..positions.len())
         .filter(|&i| crate::points::in_range(positions[i]))
         .collect();
     let pts: Vec<DVec3> = finite.iter().map(|&i| positions[i]).collect();
     let ties: Vec<u64> = finite.iter().map(|&i| i as u64).collect();
+    let held: Option<Vec<bool>> = held.map(|h| finite.iter().map(|&i| h[i]).collect());
     let origin = super::origin_of(&pts);
+    let (isolation, short_lists) = super::isolation::cap(
+        super::isolation::of_cloud(&pts, &ties, origin, params.k()),
+        params.radius,
+    );
     let r = CloudRun {
         positions: &pts,
         ties: &ties,
         origin,
         region: None,
-        isolation: super::isolation::cap(
-            super::isolation::of_cloud(&pts, &ties, origin, params.k()),
-            params.radius,
-        ),
+        isolation,
+        short_lists,
         complete: None,
         wanted: None,
+        held: held.as_deref(),
     };
     let timer = Timer::start();
     let k = params.k();
@@ -699,8 +740,10 @@ mod tests {
             origin,
             region: None,
             isolation: crate::denoise::isolation::of_cloud(&pts, &ties, origin, 16),
+            short_lists: false,
             complete: None,
             wanted: None,
+            held: None,
         };
         let guarded = Params::default();
         let bilateral = Params {
@@ -739,8 +782,10 @@ mod tests {
                 max: bb.max + DVec3::splat(bb.diagonal()),
             }),
             isolation: crate::denoise::isolation::of_cloud(&pts, &ties, origin, 16),
+            short_lists: false,
             complete: None,
             wanted: None,
+            held: None,
         };
         // A 12 × 12 corner of the 60 × 60 plane: 4 % of the points, so lists are computed
         // only within reach of it.
@@ -768,7 +813,8 @@ mod tests {
     }
 
     /// Issue 9: `--radius` in the input's units. Below the grid's spacing every list is capped
-    /// and nothing moves; far above the isolation radius the result is the default's.
+    /// and nothing moves; far above the isolation radius the result is the default's; at 1.5
+    /// grid steps the lists hold 9 points, and the points move.
     #[test]
     fn issue9_radius_caps_lists_in_the_inputs_units() {
         let pts = issue9_cloud();
@@ -800,6 +846,56 @@ mod tests {
         .unwrap();
         assert!(two.stats.moved > 3000);
         assert!(two.stats.isolated >= 12, "{}", two.stats.isolated);
+        let short = run_all(
+            &pts,
+            &Params {
+                radius: Some(1.5),
+                ..Params::default()
+            },
+        )
+        .unwrap();
+        assert!(short.stats.moved > 3000, "{}", short.stats.moved);
+        assert_ne!(short.positions, two.positions);
+    }
+
+    /// Issue 9: `--classes`. Held points keep their input position bit for bit, and still serve
+    /// as neighbours: the free points' results differ from a run without the held ones.
+    #[test]
+    fn issue9_held_points_stay_and_still_serve_as_neighbours() {
+        let pts = issue9_cloud();
+        // Every other row of the grid is held.
+        let held: Vec<bool> = (0..pts.len())
+            .map(|i| i < 3600 && (i / 60) % 2 == 0)
+            .collect();
+        let params = Params::default();
+        let r = run_all_with(&pts, &params, Some(&held)).unwrap();
+        let free = run_all(&pts, &params).unwrap();
+        for i in 0..pts.len() {
+            if held[i] {
+                assert_eq!(r.positions[i], pts[i], "held point {i} moved");
+            }
+        }
+        assert_eq!(r.stats.held, 1800);
+        let moved = (0..pts.len()).filter(|&i| r.positions[i] != pts[i]).count();
+        assert!(moved > 1000, "{moved}");
+        // Unheld points read their held neighbours' planes: not the result of a cloud without
+        // them, and not the all-free result either (the held neighbours did not move).
+        let alone: Vec<DVec3> = (0..pts.len())
+            .filter(|&i| !held[i])
+            .map(|i| pts[i])
+            .collect();
+        let a = run_all(&alone, &params).unwrap();
+        let unheld: Vec<usize> = (0..pts.len()).filter(|&i| !held[i]).collect();
+        assert!(
+            unheld
+                .iter()
+                .zip(&a.positions)
+                .any(|(&i, p)| r.positions[i] != *p)
+        );
+        assert!(unheld.iter().any(|&i| r.positions[i] != free.positions[i]));
+        // Nothing held: the plain run.
+        let none = run_all_with(&pts, &params, Some(&vec![false; pts.len()])).unwrap();
+        assert_eq!(none.positions, free.positions);
     }
 
     #[test]

@@ -23,6 +23,9 @@ pub mod stay {
     /// Fewer than k points lie within the isolation radius: the point keeps its input position
     /// ([`crate::denoise::isolation`]).
     pub const ISOLATED: u8 = 8;
+    /// Not of a class `--classes` names: the point keeps its input position and still serves as
+    /// a neighbour.
+    pub const HELD: u8 = 16;
 }
 
 /// Splits a pass's results into positions, or-ing its [`stay`] flags into `stayed`.

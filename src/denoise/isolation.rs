@@ -95,13 +95,30 @@ pub fn of_cloud(positions: &[DVec3], ties: &[u64], origin: DVec3, k: usize) -> O
     radius(&sample(positions, ties), origin, positions.len() as u64, k)
 }
 
-/// The cap on every list: the isolation radius, or the user's `--radius` where it is smaller
-/// ([`super::Params::radius`]). Both the in-memory run and the tiling plan take it from here.
-pub fn cap(isolation: Option<f64>, user: Option<f64>) -> Option<f64> {
+/// Fewest list members a point keeps under the user's `--radius` before it counts as isolated
+/// (a plane fit needs three; eight make the small-scale fit of [`super::structure::NEAR`]).
+pub const MIN_LIST: usize = 8;
+
+/// The cap on every list and whether it is the user's: the isolation radius, or the user's
+/// `--radius` ([`super::Params::radius`]) where that is smaller. Both the in-memory run and the
+/// tiling plan take it from here.
+///
+/// Under the isolation radius a point with fewer than k points within it is isolated (the rule
+/// above). Under the user's radius the lists are those of PCL's and Open3D's hybrid search, the
+/// k nearest within the radius, and a point is isolated only with fewer than [`MIN_LIST`] (so
+/// `--radius` below the scan's k-NN radius still smooths, on shorter lists).
+pub fn cap(isolation: Option<f64>, user: Option<f64>) -> (Option<f64>, bool) {
     match (isolation, user) {
-        (Some(a), Some(b)) => Some(a.min(b)),
-        (a, b) => a.or(b),
+        (Some(a), Some(b)) if b < a => (Some(b), true),
+        (None, Some(b)) => (Some(b), true),
+        (a, _) => (a, false),
     }
+}
+
+/// The list length below which a capped list makes its point isolated, for lists of `k`:
+/// `k` under the isolation radius, `min(k, MIN_LIST)` under the user's radius (`short`).
+pub fn least_list(k: usize, short: bool) -> usize {
+    if short { k.min(MIN_LIST) } else { k }
 }
 
 /// Lists capped at `cap`: every member farther than `cap` from its point (`dist2`, squared) is

@@ -190,9 +190,9 @@ pub struct Params {
     /// LiDAR). `None`: no cap beyond the operator's own bounds.
     pub max_move: Option<f64>,
     /// `--radius`: point mode, the farthest a neighbour may be, in the input's units (metres for
-    /// LiDAR): a list holds the k nearest points within it, and a point with fewer than k points
-    /// that near keeps its position, as an isolated point does ([`isolation`]). `None`: the
-    /// cloud's isolation radius only.
+    /// LiDAR): a list holds the k nearest points within it, and a point with fewer than
+    /// [`isolation::MIN_LIST`] points that near keeps its position, as an isolated point does
+    /// ([`isolation::cap`]). `None`: the cloud's isolation radius only.
     pub radius: Option<f64>,
 }
 

@@ -46,6 +46,9 @@ pub struct Stats {
     /// Points with fewer than k points within the isolation radius, kept in place.
     #[serde(default)]
     pub isolated: u64,
+    /// Points of classes `--classes` does not name, kept in place.
+    #[serde(default)]
+    pub held: u64,
     /// Largest distance between a point's input and output positions.
     pub max_step: f64,
     /// Points per neighbourhood class (point clouds with the guarded operator).
@@ -77,6 +80,7 @@ impl Stats {
             self.far += (stayed[i] & 2 != 0) as u64;
             self.bounded += (stayed[i] & 4 != 0) as u64;
             self.isolated += (stayed[i] & 8 != 0) as u64;
+            self.held += (stayed[i] & super::common::stay::HELD != 0) as u64;
             self.displacement.add(step);
         }
         self.displacement.refresh();
@@ -90,6 +94,7 @@ impl Stats {
         self.far += o.far;
         self.bounded += o.bounded;
         self.isolated += o.isolated;
+        self.held += o.held;
         self.structure.merge(&o.structure);
         self.displacement.merge(&o.displacement);
         self.unreferenced += o.unreferenced;

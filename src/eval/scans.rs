@@ -24,6 +24,7 @@ use super::EvalError;
 use crate::denoise::structure::{Structure, classify, local_fits};
 use crate::geometry::pca_fit;
 use crate::io::Cloud;
+use crate::io::classes::ClassField;
 use crate::neighbours::KnnIndex;
 
 /// Neighbourhood size of the protocol's radius and planes.
@@ -90,20 +91,12 @@ impl Classes {
 /// Fewer than [`K`] finite points.
 pub fn classes_of(cloud: &Cloud) -> Result<Classes, EvalError> {
     let schema = &cloud.info.schema;
-    let rl = schema.record_len;
-    let field = |name: &str| schema.field_index(name);
-    if let Some(i) = field("classification") {
-        // LAS 1.4 formats 6–10 have a whole class byte beside `classification_flags`; the older
-        // formats keep flags in the top three bits.
-        let las = cloud.info.format.is_las();
-        let whole = field("classification_flags").is_some() || !las;
+    let las = cloud.info.format.is_las();
+    if let Some(field) = ClassField::of(schema, las) {
         let codes = cloud
             .records
-            .chunks_exact(rl)
-            .map(|r| {
-                let v = schema.get_f64(r, i) as u32;
-                if whole { v } else { v & 31 }
-            })
+            .chunks_exact(schema.record_len)
+            .map(|r| field.code(schema, r))
             .collect();
         let source = if las {
             ClassSource::Las
@@ -111,17 +104,6 @@ pub fn classes_of(cloud: &Cloud) -> Result<Classes, EvalError> {
             ClassSource::Field
         };
         return Ok(Classes { source, codes });
-    }
-    if let Some(i) = field("class").or_else(|| field("label")) {
-        let codes = cloud
-            .records
-            .chunks_exact(rl)
-            .map(|r| schema.get_f64(r, i) as u32)
-            .collect();
-        return Ok(Classes {
-            source: ClassSource::Field,
-            codes,
-        });
     }
     let (pts, map) = finite(&cloud.positions);
     let graph = Graph::new(&pts)?;

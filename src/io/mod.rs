@@ -56,6 +56,7 @@
 //!
 //! One backend per format lives in its own module; this module only dispatches.
 
+pub mod classes;
 pub mod e57;
 pub mod input;
 pub mod las;

@@ -59,6 +59,14 @@ pub fn denoise_points(
     cancel: &Arc<AtomicBool>,
 ) -> Result<PointsOutput, DenoiseError> {
     spec.params.validate()?;
+    if spec.classes.is_some() {
+        return Err(DenoiseError::Param {
+            name: "classes",
+            detail: "needs a class per point, which an array of positions does not have; \
+                     denoise a file (LAS, or PLY/PCD with a class field) instead"
+                .into(),
+        });
+    }
     check_points(positions)?;
     let all = with_cancel(cancel, || cloud::run_all(positions, &spec.params))?;
     let kept: Vec<usize> = (0..positions.len())

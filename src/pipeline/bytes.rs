@@ -12,8 +12,8 @@ use std::time::Instant;
 
 use cpu_time::ProcessTime;
 
-use super::{Job, OutlierMode, PipelineError, Report, RunOptions, SpecError};
-use super::{bytes_per_point, memory, mesh, peak_rss_bytes, run_file};
+use super::{Job, PipelineError, Report, RunOptions, SpecError};
+use super::{bytes_per_point, check_mesh_options, memory, mesh, peak_rss_bytes, run_file};
 use crate::denoise::Timer;
 use crate::io::{self, AtomicFile, Cloud, Format, Input};
 
@@ -66,11 +66,8 @@ pub fn run_bytes(
         drop(cloud);
         return spooled(again.open()?, job, opts);
     }
-    if mesh && job.spec.outliers != OutlierMode::Off {
-        return Err(PipelineError::Params(SpecError {
-            field: "outliers",
-            detail: "applies to point clouds, not meshes".into(),
-        }));
+    if mesh {
+        check_mesh_options(job)?;
     }
     let (out, slot) = AtomicFile::memory(&job.output);
     let mut out = Some(out);

@@ -51,6 +51,16 @@ pub enum PipelineError {
         /// What failed.
         error: TilingError,
     },
+    /// `--classes` was given for an input without a class field.
+    #[error(
+        "{path}: --classes needs a class field (a LAS classification, or a `class` or `label` \
+         field), and this file has none",
+        path = .path.display()
+    )]
+    NoClassField {
+        /// Input file.
+        path: PathBuf,
+    },
     /// The run was cancelled (Ctrl-C, a job cancel).
     #[error("cancelled")]
     Cancelled,
@@ -97,7 +107,9 @@ impl PipelineError {
     pub fn is_input_fault(&self) -> bool {
         match self {
             PipelineError::Io(io) => !matches!(io, IoError::Io { .. }),
-            PipelineError::Denoise { .. } | PipelineError::Params(_) => true,
+            PipelineError::Denoise { .. }
+            | PipelineError::Params(_)
+            | PipelineError::NoClassField { .. } => true,
             _ => false,
         }
     }
@@ -117,6 +129,9 @@ impl PipelineError {
                 error,
             },
             PipelineError::SameFile { path } => PipelineError::SameFile { path: swap(path) },
+            PipelineError::NoClassField { path } => {
+                PipelineError::NoClassField { path: swap(path) }
+            }
             PipelineError::Report { path, detail } => PipelineError::Report {
                 path: swap(path),
                 detail,

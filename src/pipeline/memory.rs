@@ -9,6 +9,7 @@
 use glam::DVec3;
 
 use super::assemble::{Assembler, threshold};
+use super::classes::Selection;
 use super::stream::sink_options;
 use super::{Job, PipelineError, Report, RunOptions};
 use crate::denoise::cloud;
@@ -73,10 +74,17 @@ pub(crate) fn run_cloud(
     let denoise_err = |e| PipelineError::denoise(&job.input, e);
     check_points(&positions).map_err(denoise_err)?;
     opts.progress.phase("denoise", 1);
+    let held: Option<Vec<bool>> = Selection::of(job, &info)?.map(|s| {
+        records
+            .chunks_exact(info.schema.record_len.max(1))
+            .map(|r| s.held(r))
+            .collect()
+    });
     let result = with_cancel(&opts.cancel, || {
-        cloud::run_all(&positions, &job.spec.params)
+        cloud::run_all_with(&positions, &job.spec.params, held.as_deref())
     })
     .map_err(denoise_err)?;
+    drop(held);
     let mut stats = result.stats;
     phases.merge(&Stats {
         phases: std::mem::take(&mut stats.phases),

@@ -35,6 +35,7 @@
 mod arrays;
 mod assemble;
 mod bytes;
+pub mod classes;
 mod error;
 mod job;
 mod memory;
@@ -50,6 +51,7 @@ pub mod tiled;
 
 pub use arrays::{PointsOutput, denoise_points};
 pub use bytes::{BytesOutput, run_bytes};
+pub use classes::ClassList;
 pub use error::PipelineError;
 pub use job::{Job, OutlierMode};
 pub use normals::NormalsAction;
@@ -138,6 +140,25 @@ pub fn run(job: &Job, opts: &RunOptions) -> Result<Report, PipelineError> {
     run_file(job, opts)
 }
 
+/// Refuses the options that apply to point clouds only (outliers, `--classes`) on a mesh.
+///
+/// # Errors
+/// [`PipelineError::Params`] naming the first such option set.
+fn check_mesh_options(job: &Job) -> Result<(), PipelineError> {
+    for (set, field) in [
+        (job.spec.outliers != OutlierMode::Off, "outliers"),
+        (job.spec.classes.is_some(), "classes"),
+    ] {
+        if set {
+            return Err(PipelineError::Params(SpecError {
+                field,
+                detail: "applies to point clouds, not meshes".into(),
+            }));
+        }
+    }
+    Ok(())
+}
+
 /// [`run`] on an input that is a file.
 fn run_file(job: &Job, opts: &RunOptions) -> Result<Report, PipelineError> {
     let wall = Instant::now();
@@ -146,12 +167,7 @@ fn run_file(job: &Job, opts: &RunOptions) -> Result<Report, PipelineError> {
     let info = source.info().clone();
     drop(source);
     let mut report = if job.spec.params.mesh_mode(info.has_faces()) {
-        if job.spec.outliers != OutlierMode::Off {
-            return Err(PipelineError::Params(SpecError {
-                field: "outliers",
-                detail: "applies to point clouds, not meshes".into(),
-            }));
-        }
+        check_mesh_options(job)?;
         mesh::run(job)?
     } else {
         let per_point = bytes_per_point(&job.spec.params, info.schema.record_len);

@@ -2,8 +2,8 @@
 //!
 //! A run is asked for in four ways — `qemd denoise` flags, a job's JSON body, the synchronous
 //! endpoint's query string, and the Python keywords — and all of them deserialise into one
-//! [`SpecOverlay`]: every field optional, named as in [`Params`] plus `paper`, `outliers` and
-//! `outlier_alpha`. [`SpecOverlay::resolve`] lays it over the defaults (or over
+//! [`SpecOverlay`]: every field optional, named as in [`Params`] plus `paper`, `outliers`,
+//! `outlier_alpha` and `classes`. [`SpecOverlay::resolve`] lays it over the defaults (or over
 //! [`Params::paper`] when `paper` is set) and [`DenoiseSpec::validate`]s the result, so each
 //! default and each range check exists once:
 //!
@@ -22,6 +22,7 @@ use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
 use super::OutlierMode;
+use super::classes::ClassList;
 use crate::denoise::{DenoiseError, Method, NormalWeighting, Params, Planes, SolveKind};
 
 /// The default outlier threshold: mean k-NN distance above mean + 2σ over the cloud.
@@ -64,6 +65,9 @@ pub struct DenoiseSpec {
     /// Outlier threshold in standard deviations above the mean.
     #[serde(default = "default_alpha")]
     pub outlier_alpha: f64,
+    /// Point clouds: only points of these classes move (`--classes`); `None`: every point.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub classes: Option<ClassList>,
 }
 
 fn default_alpha() -> f64 {
@@ -76,6 +80,7 @@ impl Default for DenoiseSpec {
             params: Params::default(),
             outliers: OutlierMode::Off,
             outlier_alpha: DEFAULT_OUTLIER_ALPHA,
+            classes: None,
         }
     }
 }
@@ -170,9 +175,9 @@ pub struct SpecOverlay {
     #[serde(skip_serializing_if = "Option::is_none")]
     pub max_move: Option<f64>,
     /// Point mode: the farthest a neighbour may be, in the input's units (metres for LiDAR);
-    /// lists hold the k nearest points within it, and a point with fewer than k that near keeps
-    /// its position (counted as isolated). Default: none beyond the cloud's isolation radius
-    /// (32 typical k-NN radii).
+    /// lists hold the k nearest points within it (PCL's and Open3D's hybrid search), and a point
+    /// with fewer than 8 that near keeps its position (counted as isolated). Default: none beyond
+    /// the cloud's isolation radius (32 typical k-NN radii).
     #[cfg_attr(feature = "cli", arg(long, value_name = "DISTANCE"))]
     #[serde(skip_serializing_if = "Option::is_none")]
     pub radius: Option<f64>,
@@ -217,6 +222,15 @@ pub struct SpecOverlay {
     #[cfg_attr(feature = "cli", arg(long))]
     #[serde(skip_serializing_if = "Option::is_none")]
     pub outlier_alpha: Option<f64>,
+    /// Point clouds: move only the points of these classes, e.g. `2,6` (LAS classification, or
+    /// a `class` or `label` field in PLY, PCD and text); the others keep their position but
+    /// still serve as neighbours. Default: every point moves.
+    #[cfg_attr(
+        feature = "cli",
+        arg(long, value_name = "CODES", value_parser = super::classes::parse)
+    )]
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub classes: Option<ClassList>,
 }
 
 impl SpecOverlay {
@@ -276,6 +290,7 @@ impl SpecOverlay {
             params: p,
             outliers: self.outliers.unwrap_or_default(),
             outlier_alpha: self.outlier_alpha.unwrap_or(alpha),
+            classes: self.classes.clone(),
         }
     }
 
@@ -313,7 +328,8 @@ impl SpecOverlay {
             lambda,
             iterations,
             outliers,
-            outlier_alpha
+            outlier_alpha,
+            classes
         );
         Ok(self)
     }
@@ -379,7 +395,7 @@ mod tests {
             panic!("Params is not an object");
         };
         let mut want: Vec<&str> = params.keys().map(String::as_str).collect();
-        want.extend(["paper", "outliers", "outlier_alpha"]);
+        want.extend(["paper", "outliers", "outlier_alpha", "classes"]);
         want.sort_unstable();
         let mut got = SpecOverlay::fields().to_vec();
         got.sort_unstable();
@@ -514,6 +530,7 @@ mod tests {
         m.insert("paper".into(), serde_json::json!(true));
         m.insert("outliers".into(), serde_json::json!("remove"));
         m.insert("outlier_alpha".into(), serde_json::json!(1.5));
+        m.insert("classes".into(), serde_json::json!("2,6"));
         let full: SpecOverlay = serde_json::from_value(serde_json::Value::Object(m)).unwrap();
         let Ok(serde_json::Value::Object(set)) = serde_json::to_value(&full) else {
             panic!("SpecOverlay is not an object");

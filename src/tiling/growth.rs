@@ -399,6 +399,7 @@ fn run_kernel<V>(
     let positions: Vec<DVec3> = pts.iter().map(|p| p.p).collect();
     let ties: Vec<u64> = pts.iter().map(|p| p.index).collect();
     let owned: Vec<bool> = pts.iter().map(|p| p.owned).collect();
+    let held: Vec<bool> = pts.iter().map(|p| p.held).collect();
     // Balls crossing the region are complete when the cells they touch hold nothing more.
     let loaded = std::sync::OnceLock::new();
     let complete = |p: DVec3, r2: f64| {
@@ -416,8 +417,10 @@ fn run_kernel<V>(
         origin: plan.origin,
         region: Some(region),
         isolation: plan.isolation,
+        short_lists: plan.short_lists,
         complete: occupancy.map(|_| &complete as &(dyn Fn(DVec3, f64) -> bool + Sync)),
         wanted: Some(&owned),
+        held: held.iter().any(|&h| h).then_some(held.as_slice()),
     };
     f(pts, &run)
 }

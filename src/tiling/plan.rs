@@ -80,6 +80,10 @@ pub struct Plan {
     /// as the in-memory path draws it; it bounds every list, hence the halo a tile can need.
     #[serde(default)]
     pub isolation: Option<f64>,
+    /// True when `isolation` is the user's `--radius`, under which shorter lists still serve
+    /// ([`crate::denoise::isolation::cap`]).
+    #[serde(default)]
+    pub short_lists: bool,
 }
 
 impl Plan {
@@ -307,6 +311,7 @@ impl Planner {
                 tiles,
                 halo,
                 isolation,
+                short_lists: false,
             };
             let load = plan.largest_load(&pts, weight);
             (plan, load)

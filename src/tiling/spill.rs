@@ -3,7 +3,7 @@
 //! ([`super::workdir`] names them).
 //!
 //! ```text
-//!  spill  tile_<t>.pts   [ index|HALO<<63 : u64 | x : f64 | y : f64 | z : f64 ]   32 bytes
+//!  spill  tile_<t>.pts   [ index|HALO<<63|HELD<<62 : u64 | x : f64 | y : f64 | z : f64 ]   32 bytes
 //!  result tile_<t>.res   [ index : u64 | x : f64 | y : f64 | z : f64 | knn_mean : f64 ] 40 bytes,
 //!                        sorted by index, written atomically: a result file is a checkpoint
 //! ```
@@ -28,6 +28,9 @@ pub const SPILL_RECORD: usize = 32;
 pub const RESULT_RECORD: usize = 40;
 /// Bit 63 of a spill record's index: the point is a halo copy, owned by another tile.
 const HALO: u64 = 1 << 63;
+/// Bit 62 of a spill record's index: the point keeps its position (`--classes`). Global indices
+/// are record numbers of one file, far below 2⁶².
+const HELD: u64 = 1 << 62;
 /// Write buffer per open spill file.
 const BUFFER: usize = 1 << 18;
 
@@ -84,16 +87,20 @@ impl SpillWriter {
         Ok(())
     }
 
-    /// Appends the point with global index `index` to tile `t`, as owned or as a halo copy.
+    /// Appends `point` to tile `t`, as owned or as a halo copy.
     ///
     /// # Errors
     /// Write failures.
-    pub fn push(&mut self, t: usize, index: u64, p: DVec3, halo: bool) -> Result<(), TilingError> {
+    pub fn push(&mut self, t: usize, point: &TilePoint) -> Result<(), TilingError> {
         let b = &mut self.buffers[t];
         if b.capacity() == 0 {
             b.reserve_exact(self.cap);
         }
-        b.extend_from_slice(&(index | if halo { HALO } else { 0 }).to_le_bytes());
+        debug_assert!(point.index & (HALO | HELD) == 0);
+        let raw =
+            point.index | if point.owned { 0 } else { HALO } | if point.held { HELD } else { 0 };
+        let p = point.p;
+        b.extend_from_slice(&raw.to_le_bytes());
         b.extend_from_slice(&p.x.to_le_bytes());
         b.extend_from_slice(&p.y.to_le_bytes());
         b.extend_from_slice(&p.z.to_le_bytes());
@@ -127,6 +134,8 @@ pub struct TilePoint {
     pub p: DVec3,
     /// True when the tile owns the point (false for halo copies).
     pub owned: bool,
+    /// True when the point keeps its position (`--classes`).
+    pub held: bool,
 }
 
 /// Records in tile `t`'s spill file: exactly the points its first load holds.
@@ -170,12 +179,13 @@ pub fn read_spill(
         let f = |o: usize| f64::from_le_bytes(rec[o..o + 8].try_into().expect("8 bytes"));
         let p = DVec3::new(f(8), f(16), f(24));
         let halo = raw & HALO != 0;
-        let index = raw & !HALO;
+        let index = raw & !(HALO | HELD);
         if keep(index, p, halo) {
             out.push(TilePoint {
                 index,
                 p,
                 owned: !halo,
+                held: raw & HELD != 0,
             });
         }
     }
@@ -336,20 +346,28 @@ impl ResultMerge {
 mod tests {
     use super::*;
 
+    fn point(index: u64, p: DVec3, owned: bool, held: bool) -> TilePoint {
+        TilePoint {
+            index,
+            p,
+            owned,
+            held,
+        }
+    }
+
     #[test]
     fn spill_and_results_round_trip_and_merge_in_index_order() {
         let dir = tempfile::tempdir().unwrap();
         let mut w = SpillWriter::create(dir.path(), 2).unwrap();
-        w.push(0, 5, DVec3::new(1.0, 2.0, 3.0), false).unwrap();
-        w.push(1, 5, DVec3::new(1.0, 2.0, 3.0), true).unwrap();
-        w.push(1, 9, DVec3::new(-1.0, 0.5, f64::MAX), false)
-            .unwrap();
+        let a = DVec3::new(1.0, 2.0, 3.0);
+        w.push(0, &point(5, a, true, false)).unwrap();
+        w.push(1, &point(5, a, false, false)).unwrap();
+        let far = DVec3::new(-1.0, 0.5, f64::MAX);
+        w.push(1, &point(9, far, true, true)).unwrap();
         assert_eq!(w.finish().unwrap(), 96);
         let mut pts = Vec::new();
         read_spill(dir.path(), 1, |_, _, _| true, &mut pts).unwrap();
-        assert_eq!(pts.len(), 2);
-        assert_eq!((pts[0].index, pts[0].owned), (5, false));
-        assert_eq!(pts[1].p, DVec3::new(-1.0, 0.5, f64::MAX));
+        assert_eq!(pts, [point(5, a, false, false), point(9, far, true, true)]);
         let r = |i: u64| TileResult {
             index: i,
             p: DVec3::splat(i as f64),
@@ -371,7 +389,8 @@ mod tests {
         let tiles = MAX_OPEN * 2 + 3;
         let mut w = SpillWriter::create(dir.path(), tiles).unwrap();
         for t in 0..tiles {
-            w.push(t, t as u64, DVec3::ONE, false).unwrap();
+            w.push(t, &point(t as u64, DVec3::ONE, true, false))
+                .unwrap();
             let mut rs = [TileResult {
                 index: (tiles - 1 - t) as u64,
                 p: DVec3::ZERO,

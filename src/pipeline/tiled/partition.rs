@@ -3,13 +3,14 @@
 //! A work directory holding the same plan and a committed partition is reused as it is.
 
 use super::plan::Limits;
+use crate::pipeline::classes::Selection;
 use crate::pipeline::stream::stream;
 use crate::pipeline::{Job, PipelineError, RunOptions};
 use crate::points::in_range;
 use crate::tiling::TileBudget;
 use crate::tiling::occupancy::Occupancy;
 use crate::tiling::plan::Plan;
-use crate::tiling::spill::{SpillWriter, spilled_points};
+use crate::tiling::spill::{SpillWriter, TilePoint, spilled_points};
 use crate::tiling::workdir::WorkDir;
 
 /// Occupancy cells per isolation radius: fine enough that a cell beside a dense region is often
@@ -88,6 +89,10 @@ fn spill(
     work: &WorkDir,
 ) -> Result<(u64, Option<Occupancy>), PipelineError> {
     let tiling_err = |e| PipelineError::tiling(&job.input, e);
+    let selection = match &job.spec.classes {
+        Some(_) => Selection::of(job, crate::io::open(&job.input, job.input_format)?.info())?,
+        None => None,
+    };
     let mut spill = SpillWriter::create(work.path(), plan.tiles.len()).map_err(tiling_err)?;
     let mut near = Vec::new();
     let mut occupancy = plan
@@ -101,13 +106,19 @@ fn spill(
             if let Some(o) = &mut occupancy {
                 o.add(p);
             }
-            let i = b.start + j as u64;
+            let mut point = TilePoint {
+                index: b.start + j as u64,
+                p,
+                owned: true,
+                held: selection.as_ref().is_some_and(|s| s.held(b.record(j))),
+            };
             let owner = plan.owner(p);
-            spill.push(owner, i, p, false).map_err(tiling_err)?;
+            spill.push(owner, &point).map_err(tiling_err)?;
+            point.owned = false;
             near.clear();
             plan.near(p, plan.halo, &mut near);
             for &t in near.iter().filter(|&&t| t != owner) {
-                spill.push(t, i, p, true).map_err(tiling_err)?;
+                spill.push(t, &point).map_err(tiling_err)?;
             }
         }
         Ok(())

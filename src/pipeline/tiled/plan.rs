@@ -79,6 +79,7 @@ pub fn plan(
     })
     .map_err(|e| PipelineError::tiling(&job.input, e))?;
     // The in-memory run caps its lists the same way (`cloud::run_all`).
-    plan.isolation = crate::denoise::isolation::cap(plan.isolation, job.spec.params.radius);
+    (plan.isolation, plan.short_lists) =
+        crate::denoise::isolation::cap(plan.isolation, job.spec.params.radius);
     Ok(plan)
 }
