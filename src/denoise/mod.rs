@@ -28,6 +28,7 @@ pub mod normals;
 pub mod qem;
 mod stats;
 pub mod structure;
+pub mod written;
 
 pub use stats::{Displacements, PhaseTiming, Stats, StructureCounts, Timer};
 
@@ -189,6 +190,17 @@ pub struct Params {
     /// `--max-move`: a hard cap on any point's displacement, in the input's units (metres for
     /// LiDAR). `None`: no cap beyond the operator's own bounds.
     pub max_move: Option<f64>,
+    /// `--write-normals`: on point clouds, also compute what the output writes per point as
+    /// extra fields (the oriented normal, the surface variation and the structure class of the
+    /// last cycle's neighbourhood, [`written`]). Off by default: the output keeps the input's
+    /// schema. Not serialised when off, so stored specs and reports keep their shape.
+    #[serde(skip_serializing_if = "is_false")]
+    pub write_normals: bool,
+}
+
+/// serde's `skip_serializing_if` for a flag that is off.
+fn is_false(b: &bool) -> bool {
+    !*b
 }
 
 /// Default point-mode neighbourhood size.
@@ -213,6 +225,7 @@ impl Default for Params {
             volume: true,
             guard: true,
             max_move: None,
+            write_normals: false,
         }
     }
 }

@@ -12,7 +12,7 @@ use std::time::Instant;
 
 use cpu_time::ProcessTime;
 
-use super::{Job, OutlierMode, PipelineError, Report, RunOptions, SpecError};
+use super::{Job, PipelineError, Report, RunOptions, SpecError};
 use super::{bytes_per_point, memory, mesh, peak_rss_bytes, run_file};
 use crate::denoise::Timer;
 use crate::io::{self, AtomicFile, Cloud, Format, Input};
@@ -66,12 +66,7 @@ pub fn run_bytes(
         drop(cloud);
         return spooled(again.open()?, job, opts);
     }
-    if mesh && job.spec.outliers != OutlierMode::Off {
-        return Err(PipelineError::Params(SpecError {
-            field: "outliers",
-            detail: "applies to point clouds, not meshes".into(),
-        }));
-    }
+    job.spec.check_mesh(mesh)?;
     let (out, slot) = AtomicFile::memory(&job.output);
     let mut out = Some(out);
     let mut take = || out.take().expect("the in-memory drivers create one sink");

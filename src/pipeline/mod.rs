@@ -86,7 +86,10 @@ pub fn bytes_per_point(params: &Params, record_len: usize) -> u64 {
         Method::Qem if params.schedule(false).filter > 0 => 8 * k + 112,
         _ => 0,
     };
-    (record_len + 4 * k + 240 + filter) as u64
+    // Written normals: the kernel's values, restored to input order and carried to the sink
+    // (`PointNormal`, 20 bytes, about three copies), and the last cycle's curvatures.
+    let normals = if params.write_normals { 72 } else { 0 };
+    (record_len + 4 * k + 240 + filter + normals) as u64
 }
 
 /// The in-memory driver's peak over [`bytes_per_point`]: the whole cloud's kernel working set
@@ -146,12 +149,7 @@ fn run_file(job: &Job, opts: &RunOptions) -> Result<Report, PipelineError> {
     let info = source.info().clone();
     drop(source);
     let mut report = if job.spec.params.mesh_mode(info.has_faces()) {
-        if job.spec.outliers != OutlierMode::Off {
-            return Err(PipelineError::Params(SpecError {
-                field: "outliers",
-                detail: "applies to point clouds, not meshes".into(),
-            }));
-        }
+        job.spec.check_mesh(true)?;
         mesh::run(job)?
     } else {
         let per_point = bytes_per_point(&job.spec.params, info.schema.record_len);
