@@ -122,13 +122,22 @@ mod tests {
 
     #[test]
     fn orientation_is_up_then_y_then_x() {
-        assert_eq!(orient(DVec3::new(0.3, 0.0, -0.5)), DVec3::new(-0.3, 0.0, 0.5));
-        assert_eq!(orient(DVec3::new(0.3, -1.0, 0.0)), DVec3::new(-0.3, 1.0, 0.0));
+        assert_eq!(
+            orient(DVec3::new(0.3, 0.0, -0.5)),
+            DVec3::new(-0.3, 0.0, 0.5)
+        );
+        assert_eq!(
+            orient(DVec3::new(0.3, -1.0, 0.0)),
+            DVec3::new(-0.3, 1.0, 0.0)
+        );
         assert_eq!(orient(DVec3::new(-1.0, 0.0, 0.0)), DVec3::X);
         assert_eq!(orient(DVec3::new(0.0, 0.0, 1.0)), DVec3::Z);
         assert_eq!(orient(DVec3::ZERO), DVec3::ZERO);
         // -0.0 is no sign: the next component decides.
-        assert_eq!(orient(DVec3::new(0.0, -1.0, -0.0)), DVec3::new(-0.0, 1.0, 0.0));
+        assert_eq!(
+            orient(DVec3::new(0.0, -1.0, -0.0)),
+            DVec3::new(-0.0, 1.0, 0.0)
+        );
     }
 
     #[test]

@@ -783,13 +783,16 @@ pub fn refuse_normals(format: Format) -> Option<&'static str> {
         | Format::Pts
         | Format::E57 => None,
         Format::Kitti => Some(
-            "a KITTI .bin record has no room for normals (--write-normals); write PLY, PCD, LAS              or text instead",
+            "a KITTI .bin record has no room for normals (--write-normals); write PLY, PCD, LAS \
+             or text instead",
         ),
         Format::Nuscenes | Format::Bin(_) => Some(
-            "a raw .bin record has no room for normals (--write-normals); write PLY, PCD, LAS              or text instead",
+            "a raw .bin record has no room for normals (--write-normals); write PLY, PCD, LAS \
+             or text instead",
         ),
         Format::Obj | Format::Off => Some(
-            "--write-normals applies to point clouds; a mesh's stored normals are recomputed              from its faces",
+            "--write-normals applies to point clouds; a mesh's stored normals are recomputed \
+             from its faces",
         ),
     }
 }

@@ -546,12 +546,7 @@ impl Column {
 /// `header` and `after_count` with `names` appended to the comment line that names the `n`
 /// columns (the line [`names_from_comments`] takes the names from), when there is one. The names
 /// follow the line's own separator: `, noise` after `//X, Y, Z`, ` noise` after `# x y z`.
-fn name_columns(
-    header: &[u8],
-    after_count: &[u8],
-    n: usize,
-    names: &[&str],
-) -> (Vec<u8>, Vec<u8>) {
+fn name_columns(header: &[u8], after_count: &[u8], n: usize, names: &[&str]) -> (Vec<u8>, Vec<u8>) {
     let blobs = [header, after_count];
     let mut found = None;
     for (b, blob) in blobs.iter().enumerate() {

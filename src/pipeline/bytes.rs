@@ -40,6 +40,7 @@ pub fn run_bytes(
     opts: &RunOptions,
 ) -> Result<BytesOutput, PipelineError> {
     job.spec.validate()?;
+    super::refuse_normals_early(job)?;
     let (Some(input_format), Some(output_format)) = (job.input_format, job.output_format) else {
         return Err(PipelineError::Params(SpecError {
             field: "format",

@@ -126,6 +126,7 @@ pub fn run(job: &Job, opts: &RunOptions) -> Result<Report, PipelineError> {
             path: job.output.clone(),
         });
     }
+    refuse_normals_early(job)?;
     // A stream (standard input, a pipe, a FIFO) is read more than once below: spool it first.
     let input = io::InputFile::open(&job.input, job.input_format, opts.temp_dir.as_deref())?;
     if input.is_spooled() {
@@ -139,6 +140,22 @@ pub fn run(job: &Job, opts: &RunOptions) -> Result<Report, PipelineError> {
         return Ok(report);
     }
     run_file(job, opts)
+}
+
+/// Refuses written normals towards an output format that cannot hold them, before any work, when
+/// the format is known from the job or the output's extension (the sink refuses it otherwise).
+fn refuse_normals_early(job: &Job) -> Result<(), PipelineError> {
+    let format = job
+        .output_format
+        .or_else(|| io::Format::from_path(&job.output).ok());
+    match format.and_then(io::refuse_normals) {
+        Some(detail) if job.spec.params.write_normals => Err(io::IoError::Unsupported {
+            path: job.output.clone(),
+            detail: detail.into(),
+        }
+        .into()),
+        _ => Ok(()),
+    }
 }
 
 /// [`run`] on an input that is a file.

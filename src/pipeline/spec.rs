@@ -585,8 +585,7 @@ mod tests {
         let on: SpecOverlay = serde_json::from_str(r#"{"write_normals": true}"#).unwrap();
         let on = on.resolve(2.0).unwrap();
         assert!(on.params.write_normals);
-        let back: DenoiseSpec =
-            serde_json::from_str(&serde_json::to_string(&on).unwrap()).unwrap();
+        let back: DenoiseSpec = serde_json::from_str(&serde_json::to_string(&on).unwrap()).unwrap();
         assert_eq!(back, on);
     }
 }

@@ -503,8 +503,10 @@ impl LasSink {
             let (offset, ty) = match existing {
                 Some((offset, i)) => (offset, schema.fields[i].ty),
                 None => {
-                    descriptors
-                        .extend_from_slice(&layout::extra_descriptor(f.name(NormalNames::Las), f.ty()));
+                    descriptors.extend_from_slice(&layout::extra_descriptor(
+                        f.name(NormalNames::Las),
+                        f.ty(),
+                    ));
                     at_ += f.ty().size();
                     (at_ - f.ty().size(), f.ty())
                 }

@@ -186,9 +186,10 @@ impl PlySink {
                     if options.normals {
                         for f in NormalField::ALL {
                             let has = |n: &&str| {
-                                h.elements[m.vertex].properties.iter().any(|p| {
-                                    p.name == *n && matches!(p.ty, PlyType::Scalar(_))
-                                })
+                                h.elements[m.vertex]
+                                    .properties
+                                    .iter()
+                                    .any(|p| p.name == *n && matches!(p.ty, PlyType::Scalar(_)))
                             };
                             if !f.aliases().iter().any(has) {
                                 h.push_property(m.vertex, f.name(NormalNames::Ply), f.ty());
@@ -239,7 +240,10 @@ impl PlySink {
                     }
                     if options.normals {
                         for f in NormalField::ALL {
-                            if !fields.iter().any(|(n, _)| f.aliases().contains(&n.as_str())) {
+                            if !fields
+                                .iter()
+                                .any(|(n, _)| f.aliases().contains(&n.as_str()))
+                            {
                                 fields.push((f.name(NormalNames::Ply).to_string(), f.ty()));
                             }
                         }
