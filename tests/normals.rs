@@ -466,6 +466,50 @@ fn issue9_write_normals_overwrite_stored_normal_fields() {
     );
 }
 
+#[test]
+fn issue9_write_normals_organized_clouds_keep_their_nan_points_with_no_normal() {
+    let dir = tempfile::tempdir().unwrap();
+    let (w, h) = (40, 30);
+    let mut rows = String::new();
+    for j in 0..h {
+        for i in 0..w {
+            if (i * 7 + j * 3) % 23 == 0 {
+                rows.push_str("nan nan nan\n");
+            } else {
+                let (x, y) = (i as f32 * 0.05, j as f32 * 0.05);
+                rows.push_str(&format!("{x} {y} {}\n", 0.2 * x + 1.0));
+            }
+        }
+    }
+    let input = put(
+        dir.path(),
+        "org.pcd",
+        format!(
+            "VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH {w}\n\
+             HEIGHT {h}\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {}\nDATA ascii\n{rows}",
+            w * h
+        ),
+    );
+    let out = dir.path().join("out.pcd");
+    let tiled = dir.path().join("tiled.pcd");
+    denoise(&input, &out, None);
+    denoise(&input, &tiled, Some(300));
+    assert!(std::fs::read(&out).unwrap() == std::fs::read(&tiled).unwrap());
+    let c = Cloud::read(&out, None).unwrap();
+    assert_eq!(c.len(), w * h);
+    let v = values(&c, PCD);
+    let mut nan = 0;
+    for (p, v) in c.positions.iter().zip(&v) {
+        if p.x.is_nan() {
+            nan += 1;
+            assert_eq!(*v, [0.0, 0.0, 0.0, 0.0, 5.0]);
+        } else {
+            assert!((normal_of(v).length() - 1.0).abs() < 1e-6);
+        }
+    }
+    assert!(nan > 0);
+}
+
 /// A LAS 1.2 PDRF 0 file of `pts` whose 6 extra bytes are `NormalX`, `NormalY`, `NormalZ` as
 /// i16 scaled by 1/32767 (as some tools store them), all 0.
 fn las_with_scaled_normals(path: &Path, pts: &[DVec3]) {

@@ -185,6 +185,36 @@ mod tests {
     }
 
     #[test]
+    fn issue9_written_normals_follow_their_points() {
+        let info = SourceInfo::generated(Format::Ply, ScalarType::F32, 3, None);
+        let n = |s: u8| PointNormal {
+            normal: [0.0, 0.0, 1.0],
+            curvature: 0.5,
+            structure: s,
+        };
+        let b = batch();
+        let results = [Some((DVec3::X, 0.1)), None, Some((DVec3::Y, 0.9))];
+        let normals = [Some(n(0)), None, Some(n(2))];
+        let run = |asm: Assembler| {
+            let mut out = PointBatch::with_capacity(12, 3);
+            for i in 0..3 {
+                asm.push(&b, i, results[i], normals[i], &mut out);
+            }
+            out
+        };
+        let off = run(Assembler::new(&info, OutlierMode::Off, 0.5));
+        assert!(off.normals.is_empty());
+        let on = Assembler::new(&info, OutlierMode::Remove, 0.5).writing_normals(true);
+        assert_eq!(on.normals_action(), NormalsAction::Written);
+        // The removed outlier takes its normal with it; the unprocessed point is dropped.
+        assert_eq!(run(on).normals, vec![n(0)]);
+        let on = Assembler::new(&info, OutlierMode::Classify, 0.5).writing_normals(true);
+        let out = run(on);
+        assert_eq!(out.normals, vec![n(0), n(2)]);
+        assert_eq!(out.len(), out.normals.len());
+    }
+
+    #[test]
     fn the_threshold_is_mean_plus_alpha_sigma() {
         let values = [1.0, 2.0, 3.0, 4.0];
         let sum: ExactSum = values.iter().copied().collect();

@@ -44,6 +44,10 @@
 //! * **Noise flag.** With [`SinkOptions::noise_flag`] a field `noise` (`SIZE 1`, `TYPE U`,
 //!   `COUNT 1`) is appended holding 1 where [`PointBatch::flags`] has [`FLAG_NOISE`], else 0. When
 //!   the schema already has a field named `noise` (a re-run), that field is overwritten instead.
+//! * **Normals.** With [`SinkOptions::normals`] the fields `normal_x normal_y normal_z curvature`
+//!   (`F 4`, PCL's `PointNormal` names) and `structure` (`U 1`) are appended before `noise`; a
+//!   field already holding one of them (`normal_x` or `nx`, …) is overwritten instead (see
+//!   [the I/O overview](super#normals)).
 //! * **Padding.** PCL's padding fields `_` are ordinary fields in `ascii` and `binary` data; in
 //!   `binary_compressed` data PCL leaves them out of the block, so they read as zero bytes and are
 //!   not written.
