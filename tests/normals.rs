@@ -384,6 +384,42 @@ fn issue9_write_normals_tiled_writes_the_in_memory_bytes() {
     }
 }
 
+#[test]
+#[ignore = "needs ../shared"]
+fn issue9_write_normals_tiled_equals_in_memory_on_real_scans() {
+    let dir = tempfile::tempdir().unwrap();
+    let cases = [
+        ("../shared/data/lidar/lone-star.copc.laz", "laz", 60_000),
+        ("../shared/data/lidar/4_6_crop.las", "las", 3_000),
+        (
+            "../shared/data/scans/table_scene_mug_stereo_textured.pcd",
+            "pcd",
+            25_000,
+        ),
+        ("../shared/data/scans/terrain_samp11-utm.pcd", "pcd", 4_000),
+        ("../shared/data/scans/kitti_000008.bin", "ply", 2_000),
+    ];
+    for (input, ext, tile) in cases {
+        let input = Path::new(input);
+        let run_with = |tag: &str, tile_points| {
+            let out = dir.path().join(format!("{tag}.{ext}"));
+            let mut job = Job::new(input, &out);
+            job.spec.params.write_normals = true;
+            job.spec.outliers = qem_denoise::pipeline::OutlierMode::Classify;
+            let opts = RunOptions {
+                tile_points,
+                ..RunOptions::default()
+            };
+            let r = run(&job, &opts).unwrap_or_else(|e| panic!("{}: {e}", input.display()));
+            (r, std::fs::read(&out).unwrap())
+        };
+        let (_, whole) = run_with("whole", None);
+        let (r, tiled) = run_with("tiled", Some(tile));
+        assert!(r.tiles > 3, "{}: {} tiles", input.display(), r.tiles);
+        assert!(whole == tiled, "{}: tiled output differs", input.display());
+    }
+}
+
 // ---------------------------------------------------------------------------------------------
 // Stored normals: overwritten, never doubled.
 
@@ -579,6 +615,59 @@ fn issue9_write_normals_into_scaled_las_extra_bytes() {
         assert!((n.length() - 1.0).abs() < 1e-3, "point {i}: {n}");
         assert!(n.z >= 0.0);
     }
+}
+
+/// The LAS files of a PLY source (fresh PDRF 6), of a LAS 1.2 PDRF 0 source with extra bytes
+/// (the record grows, the Extra Bytes VLR is extended) and of a second run, read by laspy: no
+/// dimension twice, the five values there with their types, unit normals pointing up.
+#[test]
+#[ignore = "needs python3 with pip laspy[lazrs]"]
+fn issue9_write_normals_las_reads_in_laspy() {
+    let dir = tempfile::tempdir().unwrap();
+    let pts = sheet(2000, 23);
+    let input = ply(dir.path(), "in.ply", &pts);
+    let scaled = dir.path().join("scaled.las");
+    las_with_scaled_normals(&scaled, &pts);
+    let mut files = Vec::new();
+    for (src, name) in [
+        (&input, "a.las"),
+        (&input, "a.laz"),
+        (&input, "a.copc.laz"),
+        (&scaled, "b.laz"),
+    ] {
+        let out = dir.path().join(name);
+        denoise(src, &out, None);
+        files.push(out);
+    }
+    let again = dir.path().join("c.las");
+    denoise(&files[1], &again, None);
+    files.push(again);
+    let script = r#"
+import sys, laspy, numpy as np
+for path in sys.argv[1:]:
+    f = laspy.read(path)
+    names = list(f.point_format.dimension_names)
+    assert len(names) == len(set(names)), (path, names)
+    extra = list(f.point_format.extra_dimension_names)
+    assert extra[-2:] == ["Curvature", "Structure"], (path, extra)
+    assert [n for n in extra if n.startswith("Normal")] == ["NormalX", "NormalY", "NormalZ"], extra
+    n = np.stack([np.asarray(f[k], dtype=float) for k in ["NormalX", "NormalY", "NormalZ"]], 1)
+    length = np.linalg.norm(n, axis=1)
+    assert np.all(np.abs(length - 1) < 2e-3), (path, length.min(), length.max())
+    assert np.all(n[:, 2] >= 0), path
+    assert f["Structure"].dtype == np.uint8, f["Structure"].dtype
+    assert set(np.unique(f["Structure"])) <= set(range(6))
+    print("ok", path.rsplit("/", 1)[-1], len(f.points))
+"#;
+    let out = std::process::Command::new("python3")
+        .args(["-c", script])
+        .args(&files)
+        .output()
+        .expect("python3 runs");
+    let text =
+        String::from_utf8_lossy(&out.stdout).to_string() + &String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{text}");
+    assert_eq!(text.matches("ok ").count(), files.len(), "{text}");
 }
 
 // ---------------------------------------------------------------------------------------------
