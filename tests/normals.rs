@@ -420,6 +420,63 @@ fn issue9_write_normals_tiled_equals_in_memory_on_real_scans() {
     }
 }
 
+#[test]
+fn issue9_write_normals_scale_out_tasks_write_the_denoise_bytes() {
+    let dir = tempfile::tempdir().unwrap();
+    let input = ply(dir.path(), "in.ply", &sheet(8000, 29));
+    let work = dir.path().join("work");
+    let run_ok = |args: &[&str]| {
+        let o = qemd(args);
+        assert!(
+            o.status.success(),
+            "qemd {args:?}: {}",
+            String::from_utf8_lossy(&o.stderr)
+        );
+    };
+    let flags = ["--write-normals", "--tile-points", "1500"];
+    let mut plan = vec![
+        "plan",
+        s(&input),
+        "--work",
+        s(&work),
+        "--format",
+        "las",
+        "-q",
+    ];
+    plan.extend(flags);
+    run_ok(&plan);
+    for phase in ["partition", "globals", "tiles", "stitch"] {
+        run_ok(&["worker", "--work", s(&work), "--phase", phase, "-q"]);
+    }
+    let denoised = dir.path().join("denoise.las");
+    let mut denoise = vec!["denoise", s(&input), "-o", s(&denoised), "-q"];
+    denoise.extend(flags);
+    run_ok(&denoise);
+    // The stitched format, and another one the stitch writes from the same results.
+    for (name, want) in [
+        ("out.las", denoised.clone()),
+        ("out.pcd", dir.path().join("d.pcd")),
+    ] {
+        let out = dir.path().join(name);
+        run_ok(&["finish", "--work", s(&work), "-o", s(&out), "-q"]);
+        if name.ends_with(".pcd") {
+            let mut denoise = vec!["denoise", s(&input), "-o", s(&want), "-q"];
+            denoise.extend(flags);
+            run_ok(&denoise);
+        }
+        assert!(
+            std::fs::read(&out).unwrap() == std::fs::read(&want).unwrap(),
+            "{name}: scale-out output differs from qemd denoise"
+        );
+    }
+    // A format without room is refused by the finish too, leaving nothing.
+    let bin = dir.path().join("out.bin");
+    let o = qemd(&["finish", "--work", s(&work), "-o", s(&bin), "-q"]);
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("no room for normals"));
+    assert!(!bin.exists());
+}
+
 // ---------------------------------------------------------------------------------------------
 // Stored normals: overwritten, never doubled.
 

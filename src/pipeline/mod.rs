@@ -20,7 +20,9 @@
 //! the input is refused. An input that is a stream (`-`, `/dev/stdin` from a pipe, a FIFO) is
 //! first spooled to the temporary directory ([`crate::io::input`]), since the passes below read
 //! it more than once. Stored normals are recomputed (meshes) or cleared (clouds), never written
-//! stale (`normals`). Points of a point cloud that fail [`crate::points::in_range`] (a NaN or
+//! stale (`normals`); with `write_normals` a cloud gets the run's own normals, curvature and
+//! structure class as fields instead ([`crate::denoise::written`]), carried through the tiles'
+//! result records so both point paths write the same bytes. Points of a point cloud that fail [`crate::points::in_range`] (a NaN or
 //! infinite coordinate, or one beyond ±10¹², i.e. a corrupt record) are dropped and counted as
 //! they are read (organized PCD clouds keep them, unprocessed and unchanged). Outliers are
 //! flagged (keeping their input position) or removed as [`OutlierMode`] says.
