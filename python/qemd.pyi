@@ -45,6 +45,7 @@ def denoise(
     volume: Optional[bool] = None,
     guard: Optional[bool] = None,
     max_move: Optional[float] = None,
+    radius: Optional[float] = None,
     rings: Optional[int] = None,
     knn: Optional[int] = None,
     normals: Optional[NormalWeighting] = None,
@@ -79,7 +80,7 @@ def denoise(points: Points, *, faces: Optional[Faces] = None, **params: Any) -> 
         Worker threads (default: all cores). The result does not depend on it.
     **params
         The spec's fields: ``knn`` (default 16 on clouds), ``method``, ``planes``, ``filter``,
-        ``updates``, ``mu``, ``sigma_r``, ``volume``, ``guard``, ``max_move``, ``rings``,
+        ``updates``, ``mu``, ``sigma_r``, ``volume``, ``guard``, ``max_move``, ``radius``, ``rings``,
         ``normals``, ``solve``, ``eps``, ``lambda`` (pass it as ``**{"lambda": 0.1}``: it is a
         Python keyword), ``iterations``, ``paper``, ``outliers``, ``outlier_alpha``.
         :func:`spec_fields` lists them. ``write_normals`` applies to files

@@ -230,6 +230,28 @@ fn guarded_gains_with_one_update_per_cycle() {
     );
 }
 
+/// `--radius` caps every list in the input's units, the same in every tile: about half the
+/// points of this surface have fewer than 16 points within 0.35 and keep their position.
+#[test]
+fn issue9_radius_caps_lists_any_tile_size() {
+    let d = tempfile::tempdir().unwrap();
+    let input = write(d.path(), "radius.ply", surface(4000, 8));
+    let reports = assert_seamless(
+        &input,
+        &job(Params {
+            radius: Some(0.35),
+            ..Params::default()
+        }),
+        SIZES,
+    );
+    let s = &reports[0].stats;
+    assert!(
+        s.isolated > 400 && s.isolated < 3600,
+        "isolated {} of 4000",
+        s.isolated
+    );
+}
+
 #[test]
 fn bilateral_with_its_global_pre_pass() {
     let d = tempfile::tempdir().unwrap();

@@ -75,7 +75,7 @@ fn threads_of(options: &[(String, Bound<'_, PyAny>)]) -> PyResult<Option<usize>>
 /// faces: optional (M, 3) integer array of vertex indices: mesh mode (unless `knn` is given).
 /// threads: worker threads (default: all cores); the result is the same for any count.
 /// **params: the parameter spec's fields (knn, method, planes, filter, updates, mu, sigma_r,
-///     volume, guard, max_move, rings, normals, solve, eps, lambda, iterations, paper, outliers,
+///     volume, guard, max_move, radius, rings, normals, solve, eps, lambda, iterations, paper, outliers,
 ///     outlier_alpha), as the CLI's flags and the API's JSON fields name them; write_normals
 ///     applies to files (denoise_file) and is refused here.
 ///

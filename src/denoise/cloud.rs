@@ -623,7 +623,10 @@ pub fn run_all(positions: &[DVec3], params: &Params) -> Result<AllResult, Denois
         ties: &ties,
         origin,
         region: None,
-        isolation: super::isolation::of_cloud(&pts, &ties, origin, params.k()),
+        isolation: super::isolation::cap(
+            super::isolation::of_cloud(&pts, &ties, origin, params.k()),
+            params.radius,
+        ),
         complete: None,
         wanted: None,
     };
@@ -789,6 +792,41 @@ mod tests {
         for i in (0..pts.len()).filter(|&i| part.exact[i]) {
             assert_eq!(part.positions[i], all.positions[i], "point {i}");
         }
+    }
+
+    /// Issue 9: `--radius` in the input's units. Below the grid's spacing every list is capped
+    /// and nothing moves; far above the isolation radius the result is the default's.
+    #[test]
+    fn issue9_radius_caps_lists_in_the_inputs_units() {
+        let pts = issue9_cloud();
+        let tight = Params {
+            radius: Some(0.9),
+            ..Params::default()
+        };
+        let r = run_all(&pts, &tight).unwrap();
+        assert_eq!(r.positions, pts);
+        assert_eq!(r.stats.isolated, pts.len() as u64);
+        let wide = Params {
+            radius: Some(1e9),
+            ..Params::default()
+        };
+        let (a, b) = (
+            run_all(&pts, &wide).unwrap(),
+            run_all(&pts, &Params::default()).unwrap(),
+        );
+        assert_eq!(a.positions, b.positions);
+        assert!(b.stats.moved > 3000);
+        // Two grid steps: the grid's lists are whole, the far cluster of 10 is isolated.
+        let two = run_all(
+            &pts,
+            &Params {
+                radius: Some(2.5),
+                ..Params::default()
+            },
+        )
+        .unwrap();
+        assert!(two.stats.moved > 3000);
+        assert!(two.stats.isolated >= 12, "{}", two.stats.isolated);
     }
 
     #[test]

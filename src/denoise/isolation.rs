@@ -95,6 +95,15 @@ pub fn of_cloud(positions: &[DVec3], ties: &[u64], origin: DVec3, k: usize) -> O
     radius(&sample(positions, ties), origin, positions.len() as u64, k)
 }
 
+/// The cap on every list: the isolation radius, or the user's `--radius` where it is smaller
+/// ([`super::Params::radius`]). Both the in-memory run and the tiling plan take it from here.
+pub fn cap(isolation: Option<f64>, user: Option<f64>) -> Option<f64> {
+    match (isolation, user) {
+        (Some(a), Some(b)) => Some(a.min(b)),
+        (a, b) => a.or(b),
+    }
+}
+
 /// Lists capped at `cap`: every member farther than `cap` from its point (`dist2`, squared) is
 /// dropped. Returns the capped lists, their squared radii (`cap²` for a capped list: the ball its
 /// exactness needs) and which lists were capped. `lists` must be sorted by distance.

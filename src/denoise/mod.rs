@@ -190,6 +190,11 @@ pub struct Params {
     /// `--max-move`: a hard cap on any point's displacement, in the input's units (metres for
     /// LiDAR). `None`: no cap beyond the operator's own bounds.
     pub max_move: Option<f64>,
+    /// `--radius`: point mode, the farthest a neighbour may be, in the input's units (metres for
+    /// LiDAR): a list holds the k nearest points within it, and a point with fewer than k points
+    /// that near keeps its position, as an isolated point does ([`isolation`]). `None`: the
+    /// cloud's isolation radius only.
+    pub radius: Option<f64>,
     /// `--write-normals`: on point clouds, also compute what the output writes per point as
     /// extra fields (the oriented normal, the surface variation and the structure class of the
     /// last cycle's neighbourhood, [`written`]). Off by default: the output keeps the input's
@@ -225,6 +230,7 @@ impl Default for Params {
             volume: true,
             guard: true,
             max_move: None,
+            radius: None,
             write_normals: false,
         }
     }
@@ -348,6 +354,9 @@ impl Params {
         }
         if self.max_move.is_some_and(|m| !m.is_finite() || m < 0.0) {
             return bad("max_move", "must be finite and ≥ 0");
+        }
+        if self.radius.is_some_and(|r| !r.is_finite() || r <= 0.0) {
+            return bad("radius", "must be finite and > 0");
         }
         self.solver().validate()?;
         Ok(())

@@ -197,6 +197,13 @@ pub struct SpecOverlay {
     #[cfg_attr(feature = "cli", arg(long, value_name = "DISTANCE"))]
     #[serde(skip_serializing_if = "Option::is_none")]
     pub max_move: Option<f64>,
+    /// Point mode: the farthest a neighbour may be, in the input's units (metres for LiDAR);
+    /// lists hold the k nearest points within it, and a point with fewer than k that near keeps
+    /// its position (counted as isolated). Default: none beyond the cloud's isolation radius
+    /// (32 typical k-NN radii).
+    #[cfg_attr(feature = "cli", arg(long, value_name = "DISTANCE"))]
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub radius: Option<f64>,
     /// k-ring size of tangent planes in mesh mode, the vertex itself included (default 2).
     #[cfg_attr(feature = "cli", arg(long))]
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -301,6 +308,9 @@ impl SpecOverlay {
         if self.max_move.is_some() {
             p.max_move = self.max_move;
         }
+        if self.radius.is_some() {
+            p.radius = self.radius;
+        }
         DenoiseSpec {
             params: p,
             outliers: self.outliers.unwrap_or_default(),
@@ -333,6 +343,7 @@ impl SpecOverlay {
             volume,
             guard,
             max_move,
+            radius,
             rings,
             knn,
             normals,

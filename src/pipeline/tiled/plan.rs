@@ -74,8 +74,11 @@ pub fn plan(
         }));
     }
     let reach = cloud::reach(&job.spec.params);
-    with_cancel(&opts.cancel, || {
+    let mut plan = with_cancel(&opts.cancel, || {
         planner.finish_within(limits.target, limits.max_points, k, reach)
     })
-    .map_err(|e| PipelineError::tiling(&job.input, e))
+    .map_err(|e| PipelineError::tiling(&job.input, e))?;
+    // The in-memory run caps its lists the same way (`cloud::run_all`).
+    plan.isolation = crate::denoise::isolation::cap(plan.isolation, job.spec.params.radius);
+    Ok(plan)
 }
