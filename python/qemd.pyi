@@ -83,7 +83,8 @@ def denoise(points: Points, *, faces: Optional[Faces] = None, **params: Any) -> 
         ``updates``, ``mu``, ``sigma_r``, ``volume``, ``guard``, ``max_move``, ``radius``, ``rings``,
         ``normals``, ``solve``, ``eps``, ``lambda`` (pass it as ``**{"lambda": 0.1}``: it is a
         Python keyword), ``iterations``, ``paper``, ``outliers``, ``outlier_alpha``.
-        :func:`spec_fields` lists them.
+        :func:`spec_fields` lists them. ``write_normals`` applies to files
+        (:func:`denoise_file`) and raises here.
 
     Returns
     -------
@@ -118,7 +119,9 @@ def denoise_file(
     ``memory_budget`` (bytes, default 1 GiB) or when ``tile_points`` is given; the output keeps
     the input's schema and appears atomically; formats follow the extensions unless
     ``input_format`` / ``output_format`` name them (``ply``, ``las``, ``laz``, ``pcd``, ...).
-    The other keywords are the spec's fields, as for :func:`denoise`.
+    The other keywords are the spec's fields, as for :func:`denoise`; ``write_normals=True``
+    (files only) adds each point's normal, curvature and structure class as fields, as
+    ``qemd denoise --write-normals`` does.
 
     Returns the run report (the CLI's ``--report`` JSON) as a dict: ``mode``, ``points_in``,
     ``points_out``, ``tiles``, ``outliers_found``, ``stats``, ``phases``, ...

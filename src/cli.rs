@@ -233,7 +233,7 @@ pub struct DenoiseArgs {
     pub run: RunFlags,
     /// Directory for spill files and the spool of standard input; must exist (default:
     /// `temp_dir` of the configuration, else the system temporary directory). A tiled run needs
-    /// about 88 bytes per point free there (checked before it starts).
+    /// about 88 bytes per point free there (112 with --write-normals; checked before it starts).
     #[arg(long)]
     pub temp_dir: Option<PathBuf>,
     /// Write a JSON report (counts, tiles, per-phase wall and CPU time, peak RSS) here.

@@ -440,6 +440,11 @@ fn denoise(a: DenoiseArgs) -> Result<()> {
         if report.normals == pipeline::NormalsAction::Recomputed {
             eprintln!("qemd: the stored normals were recomputed from the denoised faces");
         }
+        if report.normals == pipeline::NormalsAction::Written {
+            eprintln!(
+                "qemd: wrote each point's normal, curvature and structure class as fields (--write-normals)"
+            );
+        }
         if report.dropped_non_finite > 0 {
             eprintln!(
                 "qemd: warning: {} points with NaN, infinite or out-of-range (beyond ±1e12) coordinates were dropped",

@@ -19,6 +19,7 @@
 //!  records:   [ r0 (R bytes) | r1 | r2 | … ]       original encoding, attributes untouched
 //!  start:     global index of p0 in the source
 //!  flags:     [] or one byte per point (FLAG_NOISE)
+//!  normals:   [] or one PointNormal per point (`--write-normals`)
 //! ```
 
 use glam::DVec3;
@@ -289,6 +290,35 @@ pub struct PointBatch {
     /// Per-point flags: empty, or one byte per point ([`FLAG_NOISE`] marks an outlier). Sinks
     /// created with a noise flag write it (LAS class 7, or a `noise` property elsewhere).
     pub flags: Vec<u8>,
+    /// Per-point normals: empty, or one per point. Sinks created with `normals` in their options
+    /// write them as extra fields (an empty `normals` writes [`PointNormal::NONE`] everywhere).
+    pub normals: Vec<PointNormal>,
+}
+
+/// What `--write-normals` writes for one point: the unit normal its neighbourhood gave in the
+/// run (oriented, see [`crate::denoise::written`]), the surface variation and the structure
+/// class. Stored in `f32` (`u8` for the class), the types every format writes them in, so the
+/// in-memory and tiled paths hand sinks the same bits.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct PointNormal {
+    /// Unit normal, or 0 0 0 where the point has none.
+    pub normal: [f32; 3],
+    /// Surface variation `λ0 / (λ0 + λ1 + λ2)` of the neighbourhood (PCL's and PDAL's
+    /// `curvature`), 0 where it has none.
+    pub curvature: f32,
+    /// The structure class code (`denoise::structure::Structure`: surface 0, edge 1, line 2,
+    /// scatter 3, sparse 4, degenerate 5).
+    pub structure: u8,
+}
+
+impl PointNormal {
+    /// The values of a point without a neighbourhood (not processed): no normal, no curvature,
+    /// degenerate (5).
+    pub const NONE: PointNormal = PointNormal {
+        normal: [0.0; 3],
+        curvature: 0.0,
+        structure: 5,
+    };
 }
 
 /// [`PointBatch::flags`] bit: the point is a statistical outlier.
@@ -303,6 +333,7 @@ impl PointBatch {
             records: Vec::with_capacity(capacity * record_len),
             record_len,
             flags: Vec::new(),
+            normals: Vec::new(),
         }
     }
 
@@ -322,6 +353,7 @@ impl PointBatch {
         self.positions.clear();
         self.records.clear();
         self.flags.clear();
+        self.normals.clear();
     }
 
     /// Record bytes of point `i`.
@@ -337,6 +369,11 @@ impl PointBatch {
     /// The flags of point `i` (0 when the batch carries none).
     pub fn flag(&self, i: usize) -> u8 {
         self.flags.get(i).copied().unwrap_or(0)
+    }
+
+    /// The normal of point `i` ([`PointNormal::NONE`] when the batch carries none).
+    pub fn normal(&self, i: usize) -> PointNormal {
+        self.normals.get(i).copied().unwrap_or(PointNormal::NONE)
     }
 
     /// Appends one point.

@@ -432,7 +432,7 @@ fn issue12_e57_noise_flag_is_an_extension_attribute() {
         c.len() as u64,
         &io::SinkOptions {
             noise_flag: true,
-            temp_dir: None,
+            ..io::SinkOptions::default()
         },
     )
     .unwrap();

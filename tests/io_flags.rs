@@ -15,6 +15,7 @@ use qem_denoise::points::{Endian, FLAG_NOISE, PointBatch, ScalarType, write_scal
 
 const NOISE: SinkOptions = SinkOptions {
     noise_flag: true,
+    normals: false,
     temp_dir: None,
 };
 

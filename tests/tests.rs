@@ -18,6 +18,7 @@ mod io_ply;
 mod issue12;
 mod k8s;
 mod knn_bounds;
+mod normals;
 mod operator;
 mod raw_bin;
 mod real_data;

@@ -76,7 +76,8 @@ fn threads_of(options: &[(String, Bound<'_, PyAny>)]) -> PyResult<Option<usize>>
 /// threads: worker threads (default: all cores); the result is the same for any count.
 /// **params: the parameter spec's fields (knn, method, planes, filter, updates, mu, sigma_r,
 ///     volume, guard, max_move, radius, rings, normals, solve, eps, lambda, iterations, paper, outliers,
-///     outlier_alpha), as the CLI's flags and the API's JSON fields name them.
+///     outlier_alpha), as the CLI's flags and the API's JSON fields name them; write_normals
+///     applies to files (denoise_file) and is refused here.
 ///
 /// Returns the denoised (N, 3) array in the input's dtype. With outliers="remove" the outliers'
 /// rows are left out; with outliers="classify" returns (points, noise), noise a bool (N,) array,
@@ -99,14 +100,18 @@ fn denoise<'py>(
         Some(f) if !f.is_none() => Some(read_faces(f, pts.len()).map_err(|e| error(&e))?),
         _ => None,
     };
+    if spec.params.write_normals {
+        // The normals are fields of an output file; an array has no fields to add.
+        let e = SpecError {
+            field: "write_normals",
+            detail: "writes fields of an output file: use denoise_file() (qemd.normals() gives \
+                     an array's PCA normals)"
+                .into(),
+        };
+        return Err(error(&e.to_string()));
+    }
     if spec.params.mesh_mode(faces.is_some()) {
-        if spec.outliers != OutlierMode::Off {
-            let e = SpecError {
-                field: "outliers",
-                detail: "applies to point clouds, not meshes".into(),
-            };
-            return Err(error(&e.to_string()));
-        }
+        spec.check_mesh(true).map_err(|e| error(&e.to_string()))?;
         let out = compute::run(py, threads, |_| {
             qem_denoise::denoise::denoise(&pts, faces.as_ref(), &spec.params)
         })?

@@ -407,6 +407,19 @@ def test_bad_keywords_raise(sphere):
     raises(qemd.knn, sphere, 0, match="k")
     raises(qemd.knn, sphere[:4], 5, match="4")
     assert set(qemd.spec_fields()) >= {"knn", "method", "lambda", "outliers", "outlier_alpha"}
+    raises(qemd.denoise, sphere, write_normals=True, match="write_normals: writes fields of an output file")
+
+
+def test_issue9_denoise_file_writes_normals_as_the_cli(tmp_path, sphere):
+    src = tmp_path / "in.ply"
+    write_ply(src, sphere)
+    report = qemd.denoise_file(src, tmp_path / "py.ply", write_normals=True)
+    assert report["normals"] == "written"
+    r = cli("denoise", src, "-o", tmp_path / "cli.ply", "--write-normals", "-q")
+    assert r.returncode == 0, r.stderr
+    py = (tmp_path / "py.ply").read_bytes()
+    assert py == (tmp_path / "cli.ply").read_bytes()
+    assert b"property float nx\nproperty float ny\nproperty float nz\n" in py[:400]
 
 
 def test_file_errors_raise_naming_the_file(tmp_path, sphere):

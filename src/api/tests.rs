@@ -426,6 +426,44 @@ async fn sync_denoise_and_its_refusals() {
 }
 
 #[tokio::test]
+async fn issue9_sync_write_normals_adds_the_fields_and_refuses_kitti() {
+    let dir = tempfile::tempdir().unwrap();
+    let app = router(state(dir.path(), &[]).await);
+    let data = ply(1200);
+    let (status, _, body) = send(
+        &app,
+        Request::post("/v1/denoise?write_normals=true")
+            .body(Body::from(data.clone()))
+            .unwrap(),
+    )
+    .await;
+    assert_eq!(status, StatusCode::OK, "{}", String::from_utf8_lossy(&body));
+    let text = String::from_utf8_lossy(&body[..400]);
+    assert!(
+        text.contains(
+            "property float nx\nproperty float ny\nproperty float nz\nproperty float curvature\n\
+             property uchar structure\n"
+        ),
+        "{text}"
+    );
+    // 12 bytes of position and 17 of normals per point.
+    assert_eq!(
+        body.len() - body.windows(11).position(|w| w == b"end_header\n").unwrap() - 11,
+        1200 * 29
+    );
+    let (status, _, body) = send(
+        &app,
+        Request::post("/v1/denoise?write_normals=true&output_format=kitti")
+            .body(Body::from(data))
+            .unwrap(),
+    )
+    .await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY);
+    let v: serde_json::Value = serde_json::from_slice(&body).unwrap();
+    assert_eq!(v["field"], "write_normals", "{v}");
+}
+
+#[tokio::test]
 async fn issue15_every_secured_operation_documents_and_answers_401() {
     // schemathesis found 401 undocumented on most /v1 operations: each operation without
     // `security: []` must document 401, and the router must answer it without a token.

@@ -192,6 +192,8 @@ mod tests {
         code["outliers"] = serde_json::to_value(crate::pipeline::OutlierMode::default()).unwrap();
         code["outlier_alpha"] = serde_json::json!(crate::jobs::Settings::default().outlier_alpha);
         code["paper"] = serde_json::json!(false);
+        // Not serialised when off (stored specs keep their shape).
+        code["write_normals"] = serde_json::json!(false);
         let mut checked = 0;
         for (name, prop) in props {
             let Some(doc_default) = prop.get("default") else {

@@ -41,10 +41,11 @@ use super::guarded::{self, Guard};
 use super::normals::{filter_point_normals, pca_normals};
 use super::qem::is_duplicate;
 use super::structure::{Structure, classify, local_fits, noise_scale};
+use super::written::of_cycle;
 use super::{DenoiseError, Method, Params, Stats, StructureCounts, Timer, bilateral, qem};
 use crate::geometry::ExactSum;
 use crate::neighbours::{KnnIndex, Neighbourhoods, NeighboursError};
-use crate::points::Aabb;
+use crate::points::{Aabb, PointNormal};
 
 /// Scalars computed over the whole cloud before the operator runs.
 #[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -187,6 +188,9 @@ pub fn reach(params: &Params) -> usize {
         // so only a single-update cycle needs the extra hop.
         Method::Qem if params.guard => s.cycles * (3 + s.filter + s.updates.max(2)),
         Method::Qem => s.cycles * (2 + s.filter + s.updates),
+        // The written classes of the last cycle read the members' fits: one hop past its
+        // normals, which is past a bilateral pass's reach (the QEM cycles reach further anyway).
+        Method::Bilateral if params.write_normals => s.cycles + 1,
         Method::Bilateral => s.cycles,
     }
 }
@@ -239,6 +243,9 @@ pub struct CloudResult {
     /// The neighbourhood class of the first cycle (`Structure` code) for the guarded operator,
     /// `None` for the others.
     pub structure: Option<Vec<u8>>,
+    /// With [`Params::write_normals`]: what the output writes per point, from the last cycle
+    /// ([`super::written`]); exact wherever the position is.
+    pub normals: Option<Vec<PointNormal>>,
     /// Phase timings.
     pub stats: Stats,
 }
@@ -457,6 +464,7 @@ fn run_on(
         Some(h) => frame.order.iter().map(|&i| h[i as usize]).collect(),
         None => Vec::new(),
     };
+    let mut written = None;
     // After every pass (Jacobi: the next pass reads these positions).
     let hold = |cur: &mut Vec<DVec3>, stayed: &mut [u8]| {
         for (j, _) in isolated.iter().enumerate().filter(|(_, i)| **i) {
@@ -505,6 +513,10 @@ fn run_on(
                 params.sigma_r_floor(false),
                 sched.filter,
             );
+            if params.write_normals && pass + 1 == sched.cycles {
+                let fc = Some((fits.as_slice(), classes.as_slice()));
+                written = Some(of_cycle(&cur, &lists, &radii, &isolated, &normals, fc));
+            }
             timer.lap("normals", &mut stats);
             check_cancel()?;
             let g = Guard {
@@ -547,6 +559,9 @@ fn run_on(
             ),
             _ => normals,
         };
+        if params.write_normals && pass + 1 == sched.cycles {
+            written = Some(of_cycle(&cur, &lists, &radii, &isolated, &normals, None));
+        }
         timer.lap("normals", &mut stats);
         check_cancel()?;
         match params.method {
@@ -582,6 +597,7 @@ fn run_on(
         degenerate: frame.restore(&degenerate),
         stayed: frame.restore(&stayed),
         structure: structure.map(|c| frame.restore(&c)),
+        normals: written.map(|w| frame.restore(&w)),
         stats,
     })
 }
@@ -597,6 +613,9 @@ pub struct AllResult {
     /// The neighbourhood class of the first cycle (`Structure` code) for the guarded operator,
     /// [`Structure::Degenerate`] for points not processed; `None` for the other operators.
     pub structure: Option<Vec<u8>>,
+    /// With [`Params::write_normals`]: what the output writes per point ([`super::written`]),
+    /// [`PointNormal::NONE`] for points not processed; `None` otherwise.
+    pub normals: Option<Vec<PointNormal>>,
     /// What happened.
     pub stats: Stats,
 }
@@ -686,17 +705,25 @@ pub fn run_all_with(
         .structure
         .as_ref()
         .map(|_| vec![Structure::Degenerate as u8; positions.len()]);
+    let mut normals = result
+        .normals
+        .as_ref()
+        .map(|_| vec![PointNormal::NONE; positions.len()]);
     for (j, &i) in finite.iter().enumerate() {
         out[i] = result.positions[j];
         knn_mean[i] = result.knn_mean[j];
         if let (Some(s), Some(r)) = (structure.as_mut(), result.structure.as_ref()) {
             s[i] = r[j];
         }
+        if let (Some(n), Some(r)) = (normals.as_mut(), result.normals.as_ref()) {
+            n[i] = r[j];
+        }
     }
     Ok(AllResult {
         positions: out,
         knn_mean,
         structure,
+        normals,
         stats,
     })
 }

@@ -28,6 +28,7 @@ pub mod normals;
 pub mod qem;
 mod stats;
 pub mod structure;
+pub mod written;
 
 pub use stats::{Displacements, PhaseTiming, Stats, StructureCounts, Timer};
 
@@ -194,6 +195,17 @@ pub struct Params {
     /// [`isolation::MIN_LIST`] points that near keeps its position, as an isolated point does
     /// ([`isolation::cap`]). `None`: the cloud's isolation radius only.
     pub radius: Option<f64>,
+    /// `--write-normals`: on point clouds, also compute what the output writes per point as
+    /// extra fields (the oriented normal, the surface variation and the structure class of the
+    /// last cycle's neighbourhood, [`written`]). Off by default: the output keeps the input's
+    /// schema. Not serialised when off, so stored specs and reports keep their shape.
+    #[serde(skip_serializing_if = "is_false")]
+    pub write_normals: bool,
+}
+
+/// serde's `skip_serializing_if` for a flag that is off.
+fn is_false(b: &bool) -> bool {
+    !*b
 }
 
 /// Default point-mode neighbourhood size.
@@ -219,6 +231,7 @@ impl Default for Params {
             guard: true,
             max_move: None,
             radius: None,
+            write_normals: false,
         }
     }
 }

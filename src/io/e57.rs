@@ -52,8 +52,16 @@
 //!   is lost.
 //! * **Noise flag** ([`SinkOptions::noise_flag`]): an extension attribute `qemd:noise`, integer
 //!   0–1.
+//! * **Normals** ([`SinkOptions::normals`]): the E57 surface normals extension's
+//!   `nor:normalX`, `nor:normalY`, `nor:normalZ` (single, −1 to 1, in the scan's own frame: the
+//!   normal turned by the inverse of the scan's rotation, as its coordinates are), with the
+//!   extension (`nor`, `http://www.libe57.org/E57_NOR_surface_normals.txt`) registered, and
+//!   `qemd:curvature` (single) and `qemd:structure` (integer 0–5). Attributes already holding
+//!   them (`nor:normal*`, or a field named `nx`, `normal_x`, `curvature`, `structure`, …) are
+//!   replaced, not repeated.
 //!
 //! [`SinkOptions::noise_flag`]: super::SinkOptions::noise_flag
+//! [`SinkOptions::normals`]: super::SinkOptions::normals
 
 use std::fs::File;
 use std::io::{BufReader, Read, Seek};
@@ -69,9 +77,10 @@ use glam::{DQuat, DVec3};
 
 use super::tally::{Tally, check_batch};
 use super::{
-    AtomicFile, BATCH, Extras, Format, IoError, Meta, Sink, SinkOptions, Source, SourceInfo,
+    AtomicFile, BATCH, Extras, Format, IoError, Meta, NormalField, Sink, SinkOptions, Source,
+    SourceInfo,
 };
-use crate::points::{Endian, FLAG_NOISE, Field, PointBatch, ScalarType, Schema};
+use crate::points::{Endian, FLAG_NOISE, Field, PointBatch, PointNormal, ScalarType, Schema};
 
 /// The signature an E57 file starts with.
 pub const SIGNATURE: &[u8; 8] = b"ASTM-E57";
@@ -84,6 +93,12 @@ pub const QEMD_NAMESPACE: &str = "qemd";
 
 /// URL declared for the [`QEMD_NAMESPACE`] extension.
 const QEMD_URL: &str = "https://github.com/qem-denoise/qemd/e57";
+
+/// Namespace of the E57 surface normals extension (libE57Format's, CloudCompare's).
+pub const NORMALS_NAMESPACE: &str = "nor";
+
+/// URL of the E57 surface normals extension.
+const NORMALS_URL: &str = "http://www.libe57.org/E57_NOR_surface_normals.txt";
 
 /// What an E57 source says about its file, for a sink to reproduce it.
 #[derive(Debug, Clone)]
@@ -518,6 +533,8 @@ enum Value {
     Field(usize),
     /// The noise flag.
     Noise,
+    /// A written normal's value (the normal in the scan's frame).
+    Normal(NormalField),
     /// A record the source's scan has but the cloud has no field for: 0.
     Zero,
 }
@@ -534,8 +551,41 @@ struct ScanPlan {
 
 /// A message to the writer thread.
 enum Msg {
-    /// Points of the current scan: positions, records, flags.
-    Points(usize, Vec<DVec3>, Vec<u8>, Vec<u8>),
+    /// Points of the current scan: positions, records, flags, normals.
+    Points(usize, Vec<DVec3>, Vec<u8>, Vec<u8>, Vec<PointNormal>),
+}
+
+/// The E57 record a written normal value goes to.
+fn normal_record(f: NormalField) -> Record {
+    let unit = RecordDataType::Single {
+        min: Some(-1.0),
+        max: Some(1.0),
+    };
+    let (namespace, name, data_type) = match f {
+        NormalField::X => (NORMALS_NAMESPACE, "normalX", unit),
+        NormalField::Y => (NORMALS_NAMESPACE, "normalY", unit),
+        NormalField::Z => (NORMALS_NAMESPACE, "normalZ", unit),
+        NormalField::Curvature => (
+            QEMD_NAMESPACE,
+            "curvature",
+            RecordDataType::Single {
+                min: None,
+                max: None,
+            },
+        ),
+        NormalField::Structure => (
+            QEMD_NAMESPACE,
+            "structure",
+            RecordDataType::Integer { min: 0, max: 5 },
+        ),
+    };
+    Record {
+        name: RecordName::Unknown {
+            namespace: namespace.into(),
+            name: name.into(),
+        },
+        data_type,
+    }
 }
 
 /// Streaming E57 writer.
@@ -656,7 +706,7 @@ impl E57Sink {
     ) -> Result<E57Sink, IoError> {
         let schema = &like.schema;
         let noise = options.noise_flag;
-        let (plans, extensions, coordinate_metadata) = match &like.meta {
+        let (mut plans, extensions, coordinate_metadata) = match &like.meta {
             Meta::E57(m) if schema_of(&m.scans) == *schema => (
                 m.scans
                     .iter()
@@ -667,7 +717,20 @@ impl E57Sink {
             ),
             _ => (vec![Self::fresh(schema, noise)], Vec::new(), None),
         };
+        if options.normals {
+            for p in &mut plans {
+                Self::add_normals(p, schema);
+            }
+        }
         let mut extensions = extensions;
+        let uses_normals = plans.iter().any(|p: &ScanPlan| {
+            p.prototype.iter().any(
+                |r| matches!(&r.name, RecordName::Unknown { namespace, .. } if namespace == NORMALS_NAMESPACE),
+            )
+        });
+        if uses_normals && !extensions.iter().any(|e| e.namespace == NORMALS_NAMESPACE) {
+            extensions.push(Extension::new(NORMALS_NAMESPACE, NORMALS_URL));
+        }
         let uses_qemd = plans.iter().any(|p: &ScanPlan| {
             p.prototype.iter().any(
                 |r| matches!(&r.name, RecordName::Unknown { namespace, .. } if namespace == QEMD_NAMESPACE),
@@ -872,6 +935,29 @@ impl E57Sink {
         }
     }
 
+    /// Appends the written normals' records to `plan` ([`normal_record`]), after removing the
+    /// records that hold them already (the same record names, or fields of `schema` named as a
+    /// normal value is, [`NormalField::aliases`]): one set, never two.
+    fn add_normals(plan: &mut ScanPlan, schema: &Schema) {
+        let targets: Vec<Record> = NormalField::ALL.iter().map(|&f| normal_record(f)).collect();
+        let held = |i: &usize| NormalField::ALL.iter().any(|f| f.find(schema) == Some(*i));
+        let (prototype, values): (Vec<Record>, Vec<Value>) = plan
+            .prototype
+            .drain(..)
+            .zip(plan.values.drain(..))
+            .filter(|(r, v)| {
+                !targets.iter().any(|t| t.name == r.name)
+                    && !matches!(v, Value::Field(i) if held(i))
+            })
+            .unzip();
+        plan.prototype = prototype;
+        plan.values = values;
+        for (f, r) in NormalField::ALL.into_iter().zip(targets) {
+            plan.prototype.push(r);
+            plan.values.push(Value::Normal(f));
+        }
+    }
+
     fn add_noise(prototype: &mut Vec<Record>, values: &mut Vec<Value>) {
         prototype.retain(|r| {
             !matches!(&r.name, RecordName::Unknown { namespace, name }
@@ -968,7 +1054,7 @@ fn encode(
             }));
         }
         let inverse = plan.rotation.inverse();
-        while let Some(Msg::Points(scan, positions, records, flags)) = &next {
+        while let Some(Msg::Points(scan, positions, records, flags, normals)) = &next {
             if *scan != k {
                 break;
             }
@@ -977,9 +1063,24 @@ fn encode(
             digest.update(bytemuck::cast_slice::<DVec3, u8>(positions));
             digest.update(records);
             digest.update(flags);
+            for n in normals {
+                for v in n.normal.into_iter().chain([n.curvature]) {
+                    digest.update(v.to_le_bytes());
+                }
+                digest.update([n.structure]);
+            }
             for (i, p) in positions.iter().enumerate() {
                 let rec = &records[i * rl..(i + 1) * rl];
                 let local = inverse * (*p - plan.translation);
+                let written = normals.get(i).copied().unwrap_or(PointNormal::NONE);
+                // The normal in the scan's frame, as its coordinates are stored.
+                let turned = inverse * DVec3::from_array(written.normal.map(f64::from));
+                let turned = PointNormal {
+                    // Rounding may leave a turned unit component a hair past ±1, the range
+                    // the record declares.
+                    normal: turned.to_array().map(|v| (v as f32).clamp(-1.0, 1.0)),
+                    ..written
+                };
                 let valid = local.is_finite();
                 let sph = || {
                     let r = local.length();
@@ -999,6 +1100,7 @@ fn encode(
                         Value::Noise => RecordValue::Integer(i64::from(
                             flags.get(i).is_some_and(|b| b & FLAG_NOISE != 0),
                         )),
+                        Value::Normal(f) => to_value(f.value(&turned), &r.data_type),
                         Value::Zero => to_value(0.0, &r.data_type),
                     })
                     .collect();
@@ -1069,11 +1171,17 @@ impl Sink for E57Sink {
             } else {
                 batch.flags[start..end].to_vec()
             };
+            let normals = if batch.normals.is_empty() {
+                Vec::new()
+            } else {
+                batch.normals[start..end].to_vec()
+            };
             let msg = Msg::Points(
                 scan,
                 batch.positions[start..end].to_vec(),
                 batch.records[start * rl..end * rl].to_vec(),
                 flags,
+                normals,
             );
             let sent = self.tx.as_ref().is_some_and(|tx| tx.send(msg).is_ok());
             if !sent {

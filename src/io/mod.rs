@@ -42,6 +42,33 @@
 //! refused option fails in [`create_with`] with [`IoError::Unsupported`], before any file is
 //! created.
 //!
+//! # Normals
+//!
+//! A sink created with [`SinkOptions::normals`] writes each point's [`PointNormal`] of
+//! [`PointBatch::normals`] (an empty `normals` writes [`PointNormal::NONE`]): the unit normal
+//! (`f32`), the surface variation `curvature` (`f32`) and the structure class (`u8`, the
+//! [`crate::denoise::structure::Structure`] code), as five fields ([`NormalField`]):
+//!
+//! * **PLY**: vertex properties `float nx`, `float ny`, `float nz`, `float curvature`,
+//!   `uchar structure` (after the existing ones, before an appended `noise`).
+//! * **PCD**: fields `normal_x normal_y normal_z curvature` (`F 4`, PCL's `PointNormal` names)
+//!   and `structure` (`U 1`).
+//! * **XYZ/TXT, PTS**: columns `nx ny nz curvature structure`, named in the header comment as
+//!   the noise column is.
+//! * **LAS/LAZ, COPC**: extra bytes `NormalX`, `NormalY`, `NormalZ`, `Curvature` (`float`, PDAL
+//!   `filters.normal`'s names) and `Structure` (`unsigned char`), described by the Extra Bytes
+//!   VLR (LASF_Spec, record 4), which is added or extended; the record length, the point data
+//!   offset and the LASzip VLR follow.
+//! * **E57**: the E57 normals extension's `nor:normalX`, `nor:normalY`, `nor:normalZ` (single,
+//!   −1 to 1, in the scan's own frame) and `qemd:curvature`, `qemd:structure`.
+//! * **KITTI and raw `.bin`**: refused (no room in the record); **OBJ, OFF**: refused (meshes:
+//!   their stored normals are recomputed from the faces).
+//!
+//! A field the output record already has under one of a value's names (`nx`, `normal_x` or
+//! `NormalX`; `curvature` or `Curvature`; `structure` or `Structure`) is overwritten in place,
+//! in its own type, instead of a second one being added: a re-run, or an input that stored
+//! normals, keeps one set.
+//!
 //! # Writing another format's records
 //!
 //! When the output format differs from the source's, the PLY, PCD and text sinks lay their
@@ -83,7 +110,7 @@ use std::path::{Path, PathBuf};
 use glam::DVec3;
 use thiserror::Error;
 
-use crate::points::{Faces, PointBatch, ScalarType, Schema};
+use crate::points::{Faces, PointBatch, PointNormal, ScalarType, Schema};
 
 /// Errors of the I/O layer. Each names the file it is about.
 #[derive(Debug, Error)]
@@ -585,6 +612,10 @@ pub struct SinkOptions {
     /// (PCD: a `noise` field, `SIZE 1`, `TYPE U`; PLY: a vertex property `uchar noise`; XYZ and
     /// PTS: a last column). KITTI, OBJ and OFF refuse it (see the [module overview](self)).
     pub noise_flag: bool,
+    /// Write each point's normal, surface variation and structure class
+    /// ([`PointBatch::normals`]) as the fields of the [module overview](self#normals). KITTI,
+    /// raw `.bin`, OBJ and OFF refuse it.
+    pub normals: bool,
     /// Where a sink that must seek (LAS/LAZ) spools its output when the target is a stream
     /// (standard output, a FIFO); the system temporary directory when `None`.
     pub temp_dir: Option<PathBuf>,
@@ -653,7 +684,7 @@ pub fn create_in(
     count: u64,
     options: &SinkOptions,
 ) -> Result<Box<dyn Sink>, IoError> {
-    refuse_noise_flag(out.target(), format, options)?;
+    refuse_options(out.target(), format, options)?;
     Ok(match format {
         Format::Ply => Box::new(ply::PlySink::new(out, like, count, options)?),
         Format::Obj => Box::new(obj::ObjSink::new(out, like, count)?),
@@ -695,15 +726,22 @@ fn create_file_only(
     count: u64,
     options: &SinkOptions,
 ) -> Result<Box<dyn Sink>, IoError> {
-    refuse_noise_flag(path, format, options)?;
+    refuse_options(path, format, options)?;
     Ok(match format {
         Format::Copc => Box::new(las::CopcSink::create(path, like, count, options)?),
         _ => Box::new(e57::E57Sink::create(path, like, count, options)?),
     })
 }
 
-/// [`IoError::Unsupported`] when the noise flag is asked of a format that cannot carry it.
-fn refuse_noise_flag(path: &Path, format: Format, options: &SinkOptions) -> Result<(), IoError> {
+/// [`IoError::Unsupported`] when the noise flag or the normals are asked of a format that
+/// cannot carry them.
+fn refuse_options(path: &Path, format: Format, options: &SinkOptions) -> Result<(), IoError> {
+    if let Some(detail) = options.normals.then(|| refuse_normals(format)).flatten() {
+        return Err(IoError::Unsupported {
+            path: path.to_path_buf(),
+            detail: detail.to_string(),
+        });
+    }
     if options.noise_flag {
         let refuse = match format {
             Format::Las
@@ -734,8 +772,120 @@ fn refuse_noise_flag(path: &Path, format: Format, options: &SinkOptions) -> Resu
     Ok(())
 }
 
+/// Why `format` cannot carry written normals, `None` when it can.
+pub fn refuse_normals(format: Format) -> Option<&'static str> {
+    match format {
+        Format::Las
+        | Format::Laz
+        | Format::Copc
+        | Format::Pcd
+        | Format::Ply
+        | Format::Xyz
+        | Format::Pts
+        | Format::E57 => None,
+        Format::Kitti => Some(
+            "a KITTI .bin record has no room for normals (--write-normals); write PLY, PCD, LAS \
+             or text instead",
+        ),
+        Format::Nuscenes | Format::Bin(_) => Some(
+            "a raw .bin record has no room for normals (--write-normals); write PLY, PCD, LAS \
+             or text instead",
+        ),
+        Format::Obj | Format::Off => Some(
+            "--write-normals applies to point clouds; a mesh's stored normals are recomputed \
+             from its faces",
+        ),
+    }
+}
+
 /// Name of the per-point field that carries the noise flag in PLY, PCD and text output.
 pub const NOISE_FIELD: &str = "noise";
+
+/// One of the five values [`SinkOptions::normals`] writes per point (see the
+/// [module overview](self#normals)).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum NormalField {
+    /// The normal's x.
+    X,
+    /// The normal's y.
+    Y,
+    /// The normal's z.
+    Z,
+    /// The surface variation.
+    Curvature,
+    /// The structure class code.
+    Structure,
+}
+
+/// The naming convention of an output format's normal fields.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum NormalNames {
+    /// `nx ny nz curvature structure` (PLY, text).
+    Ply,
+    /// `normal_x normal_y normal_z curvature structure` (PCD, PCL's `PointNormal`).
+    Pcd,
+    /// `NormalX NormalY NormalZ Curvature Structure` (LAS extra bytes, PDAL's dimensions).
+    Las,
+}
+
+impl NormalField {
+    /// The five values, in the order they are appended.
+    pub const ALL: [NormalField; 5] = [
+        NormalField::X,
+        NormalField::Y,
+        NormalField::Z,
+        NormalField::Curvature,
+        NormalField::Structure,
+    ];
+
+    /// Every name under which an existing field holds this value (overwritten in place).
+    pub fn aliases(self) -> &'static [&'static str] {
+        match self {
+            NormalField::X => &["nx", "normal_x", "NormalX"],
+            NormalField::Y => &["ny", "normal_y", "NormalY"],
+            NormalField::Z => &["nz", "normal_z", "NormalZ"],
+            NormalField::Curvature => &["curvature", "Curvature"],
+            NormalField::Structure => &["structure", "Structure"],
+        }
+    }
+
+    /// The name a field added in `names`'s convention gets.
+    pub fn name(self, names: NormalNames) -> &'static str {
+        let i = match names {
+            NormalNames::Ply => 0,
+            NormalNames::Pcd => 1,
+            NormalNames::Las => 2,
+        };
+        match self {
+            NormalField::X | NormalField::Y | NormalField::Z => self.aliases()[i],
+            _ => self.aliases()[usize::from(i == 2)],
+        }
+    }
+
+    /// The type of an added field.
+    pub fn ty(self) -> ScalarType {
+        match self {
+            NormalField::Structure => ScalarType::U8,
+            _ => ScalarType::F32,
+        }
+    }
+
+    /// This value of `n`.
+    pub fn value(self, n: &PointNormal) -> f64 {
+        match self {
+            NormalField::X => f64::from(n.normal[0]),
+            NormalField::Y => f64::from(n.normal[1]),
+            NormalField::Z => f64::from(n.normal[2]),
+            NormalField::Curvature => f64::from(n.curvature),
+            NormalField::Structure => f64::from(n.structure),
+        }
+    }
+
+    /// The field of `schema` that already holds this value (by [`NormalField::aliases`]).
+    pub fn find(self, schema: &Schema) -> Option<usize> {
+        self.aliases().iter().find_map(|n| schema.field_index(n))
+    }
+}
 
 /// The type a sink gives field `i` of a record whose layout comes from *another* format: a field
 /// keeps its type, except that x, y and z stored as integers (LAS keeps scaled `I32` coordinates)

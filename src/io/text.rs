@@ -38,6 +38,11 @@
 //! `# x,y,z`) gets `noise` in its own separator style, and the `# x y z …` line written for a
 //! foreign XYZ output lists it; without such a line only the column is added (it then reads back
 //! as `c3`, `c4`, …). A column already named `noise` is overwritten instead.
+//!
+//! **Normals.** With [`SinkOptions::normals`] the columns `nx ny nz curvature structure` come
+//! before the noise column and are named the same way; the normal and curvature print as `f32`
+//! (shortest text), the class as an integer. A column already named `nx` (or `normal_x`, …) is
+//! overwritten instead (see [the I/O overview](super#normals)).
 
 use std::path::Path;
 
@@ -47,8 +52,8 @@ use super::lines::{
 };
 use super::tally::{Tally, check_batch};
 use super::{
-    AtomicFile, Extras, Format, Input, IoError, Meta, NOISE_FIELD, Sink, SinkOptions, Source,
-    SourceInfo, Trailer,
+    AtomicFile, Extras, Format, Input, IoError, Meta, NOISE_FIELD, NormalField, NormalNames, Sink,
+    SinkOptions, Source, SourceInfo, Trailer,
 };
 use crate::points::{FLAG_NOISE, PointBatch, ScalarType, Schema};
 
@@ -506,21 +511,42 @@ impl Source for TextSource {
 // ---------------------------------------------------------------------------------------------
 // Writer.
 
-/// Where a text sink writes the noise flag.
+/// A value a text sink writes that the record does not hold: the noise flag or one of the
+/// written normals' values.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-enum NoiseColumn {
-    /// Nowhere (no noise flag requested).
-    Off,
-    /// Into the existing column of this schema field (a `noise` column from a previous run).
-    Field(usize),
-    /// Into a new last column.
-    Append,
+enum Column {
+    /// The noise flag, `0` or `1`.
+    Noise,
+    /// A written normal's value.
+    Normal(NormalField),
 }
 
-/// `header` and `after_count` with `noise` appended to the comment line that names the `n`
-/// columns (the line [`names_from_comments`] takes the names from), when there is one. The name
-/// follows the line's own separator: `, noise` after `//X, Y, Z`, ` noise` after `# x y z`.
-fn name_noise_column(header: &[u8], after_count: &[u8], n: usize) -> (Vec<u8>, Vec<u8>) {
+impl Column {
+    /// The name of the column when it is appended.
+    fn name(self) -> &'static str {
+        match self {
+            Column::Noise => NOISE_FIELD,
+            Column::Normal(f) => f.name(NormalNames::Ply),
+        }
+    }
+
+    /// Appends this column's value for point `i` of `batch` to `line`.
+    fn push(self, batch: &PointBatch, i: usize, line: &mut Vec<u8>) {
+        match self {
+            Column::Noise => line.push(if batch.flag(i) & FLAG_NOISE != 0 {
+                b'1'
+            } else {
+                b'0'
+            }),
+            Column::Normal(f) => push_value(line, f.ty(), f.value(&batch.normal(i))),
+        }
+    }
+}
+
+/// `header` and `after_count` with `names` appended to the comment line that names the `n`
+/// columns (the line [`names_from_comments`] takes the names from), when there is one. The names
+/// follow the line's own separator: `, noise` after `//X, Y, Z`, ` noise` after `# x y z`.
+fn name_columns(header: &[u8], after_count: &[u8], n: usize, names: &[&str]) -> (Vec<u8>, Vec<u8>) {
     let blobs = [header, after_count];
     let mut found = None;
     for (b, blob) in blobs.iter().enumerate() {
@@ -547,8 +573,10 @@ fn name_noise_column(header: &[u8], after_count: &[u8], n: usize) -> (Vec<u8>, V
             None => b" ",
         };
         let mut line = content[..body].to_vec();
-        line.extend_from_slice(sep);
-        line.extend_from_slice(NOISE_FIELD.as_bytes());
+        for name in names {
+            line.extend_from_slice(sep);
+            line.extend_from_slice(name.as_bytes());
+        }
         line.extend_from_slice(&content[body..]);
         line.extend_from_slice(eol);
         out[b].splice(start..end, line);
@@ -571,7 +599,11 @@ pub struct TextSink {
     coords: [ScalarType; 3],
     fields: Vec<usize>,
     separator: String,
-    noise: NoiseColumn,
+    /// Record fields whose column gets another value (a `noise` or `nx` column of an earlier
+    /// run).
+    overwrite: Vec<(usize, Column)>,
+    /// Columns after the record's own.
+    append: Vec<Column>,
     tally: Tally,
     line: Vec<u8>,
 }
@@ -621,18 +653,30 @@ impl TextSink {
     ) -> Result<TextSink, IoError> {
         let schema = like.schema.clone();
         let fields = extra_fields(&schema);
-        let noise = match schema.field_index(NOISE_FIELD) {
-            _ if !options.noise_flag => NoiseColumn::Off,
-            Some(i) if fields.contains(&i) => NoiseColumn::Field(i),
-            _ => NoiseColumn::Append,
-        };
+        let mut wanted: Vec<(Column, Option<usize>)> = Vec::new();
+        if options.normals {
+            for f in NormalField::ALL {
+                wanted.push((Column::Normal(f), f.find(&schema)));
+            }
+        }
+        if options.noise_flag {
+            wanted.push((Column::Noise, schema.field_index(NOISE_FIELD)));
+        }
+        let (mut overwrite, mut append) = (Vec::new(), Vec::new());
+        for (c, existing) in wanted {
+            match existing {
+                Some(i) if fields.contains(&i) => overwrite.push((i, c)),
+                _ => append.push(c),
+            }
+        }
+        let names: Vec<&str> = append.iter().map(|c| c.name()).collect();
         let (meta, separator, eol) = match &like.meta {
             Meta::Text(m) => (Some(m), m.separator.clone(), m.eol),
             _ => (None, " ".to_string(), LineEnding::Lf),
         };
         let (header, after_count) = match meta {
-            Some(m) if noise == NoiseColumn::Append => {
-                name_noise_column(&m.header, &m.after_count, schema.fields.len())
+            Some(m) if !append.is_empty() => {
+                name_columns(&m.header, &m.after_count, schema.fields.len(), &names)
             }
             Some(m) => (m.header.clone(), m.after_count.clone()),
             None => (Vec::new(), Vec::new()),
@@ -640,17 +684,15 @@ impl TextSink {
         let mut out = LineSink::new(file, eol);
         match meta {
             Some(_) => out.raw(&header)?,
-            None if flavor == TextFlavor::Xyz
-                && (!fields.is_empty() || noise == NoiseColumn::Append) =>
-            {
+            None if flavor == TextFlavor::Xyz && (!fields.is_empty() || !append.is_empty()) => {
                 let mut h = b"# x y z".to_vec();
                 for &f in &fields {
                     h.push(b' ');
                     h.extend_from_slice(schema.fields[f].name.as_bytes());
                 }
-                if noise == NoiseColumn::Append {
+                for name in &names {
                     h.push(b' ');
-                    h.extend_from_slice(NOISE_FIELD.as_bytes());
+                    h.extend_from_slice(name.as_bytes());
                 }
                 out.line(&h)?;
             }
@@ -666,7 +708,8 @@ impl TextSink {
             schema,
             fields,
             separator,
-            noise,
+            overwrite,
+            append,
             tally: Tally::new(count),
             line: Vec::new(),
         })
@@ -687,23 +730,18 @@ impl Sink for TextSink {
                 }
                 push_value(&mut self.line, self.coords[k], v);
             }
-            let flag = if batch.flag(i) & FLAG_NOISE != 0 {
-                b'1'
-            } else {
-                b'0'
-            };
             for &f in &self.fields {
                 self.line.extend_from_slice(sep);
-                if self.noise == NoiseColumn::Field(f) {
-                    self.line.push(flag);
+                if let Some(&(_, c)) = self.overwrite.iter().find(|(k, _)| *k == f) {
+                    c.push(batch, i, &mut self.line);
                     continue;
                 }
                 let v = self.schema.get_f64(rec, f);
                 push_value(&mut self.line, self.schema.fields[f].ty, v);
             }
-            if self.noise == NoiseColumn::Append {
+            for c in &self.append {
                 self.line.extend_from_slice(sep);
-                self.line.push(flag);
+                c.push(batch, i, &mut self.line);
             }
             self.out.line(&self.line)?;
         }

@@ -8,7 +8,7 @@ use super::JobsError;
 use super::progress::ProgressView;
 use super::store::JobRow;
 use crate::io::Format;
-use crate::pipeline::{OutlierMode, Report, SpecError, SpecOverlay};
+use crate::pipeline::{DenoiseSpec, OutlierMode, Report, SpecError, SpecOverlay};
 
 /// How the client named the format of an upload.
 #[derive(Debug, Clone, Default)]
@@ -103,10 +103,19 @@ pub(super) fn spec_error(e: SpecError) -> JobsError {
     }
 }
 
-/// Refuses output options a sink would refuse later (noise flags in KITTI, OBJ, OFF).
-pub(super) fn validate_output(outliers: OutlierMode, f: Format) -> Result<(), JobsError> {
+/// Refuses output options a sink would refuse later (noise flags and written normals in KITTI,
+/// raw `.bin`, OBJ, OFF).
+pub(super) fn validate_output(spec: &DenoiseSpec, f: Format) -> Result<(), JobsError> {
     let output = f.name();
-    if outliers == OutlierMode::Classify
+    if spec.params.write_normals
+        && let Some(why) = crate::io::refuse_normals(f)
+    {
+        return Err(JobsError::Invalid {
+            field: "params.write_normals".into(),
+            detail: format!("output format {output}: {why}"),
+        });
+    }
+    if spec.outliers == OutlierMode::Classify
         && matches!(
             f,
             Format::Kitti | Format::Nuscenes | Format::Bin(_) | Format::Obj | Format::Off
@@ -144,7 +153,23 @@ mod tests {
             Err(JobsError::Invalid { field, .. }) => assert_eq!(field, "outlier_alpha"),
             other => panic!("{other:?}"),
         }
-        assert!(validate_output(OutlierMode::Classify, Format::Kitti).is_err());
-        assert!(validate_output(OutlierMode::Remove, Format::Kitti).is_ok());
+        let spec = |outliers, write_normals| {
+            let mut s = DenoiseSpec {
+                outliers,
+                ..DenoiseSpec::default()
+            };
+            s.params.write_normals = write_normals;
+            s
+        };
+        assert!(validate_output(&spec(OutlierMode::Classify, false), Format::Kitti).is_err());
+        assert!(validate_output(&spec(OutlierMode::Remove, false), Format::Kitti).is_ok());
+        match validate_output(&spec(OutlierMode::Off, true), Format::Obj) {
+            Err(JobsError::Invalid { field, detail }) => {
+                assert_eq!(field, "params.write_normals");
+                assert!(detail.starts_with("output format obj: "), "{detail}");
+            }
+            other => panic!("{other:?}"),
+        }
+        assert!(validate_output(&spec(OutlierMode::Off, true), Format::Las).is_ok());
     }
 }

@@ -345,7 +345,14 @@ impl Jobs {
                     .into(),
             });
         }
-        validate_output(spec.outliers, output)?;
+        if mesh && spec.params.write_normals {
+            return Err(JobsError::Invalid {
+                field: "params.write_normals".into(),
+                detail: "applies to point clouds, not meshes (set params.knn for point mode)"
+                    .into(),
+            });
+        }
+        validate_output(&spec, output)?;
         let settings = &self.inner.settings;
         let tile_points = (!mesh && upload.points.is_none_or(|n| n > settings.job_tile_points))
             .then_some(settings.job_tile_points);

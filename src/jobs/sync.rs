@@ -39,7 +39,7 @@ impl Jobs {
             .map_err(spec_error)?;
         let input_format = req.format;
         let output_format = req.output_format.unwrap_or(input_format);
-        validate_output(spec.outliers, output_format)?;
+        validate_output(&spec, output_format)?;
         let cancel = Arc::new(AtomicBool::new(false));
         // Dropped when the client goes away before the answer: the run stops at its next check.
         struct CancelOnDrop(Arc<AtomicBool>);

@@ -1,7 +1,7 @@
 //! The point-cloud rules that turn an input record plus its result into an output record: the
 //! outlier threshold, flagging or removing outliers, unprocessed points dropped or kept
-//! (organized clouds), stale stored normals cleared. Both point drivers assemble with it, so
-//! they write the same bytes.
+//! (organized clouds), stale stored normals cleared, the run's normals carried to the sink
+//! (`--write-normals`). Both point drivers assemble with it, so they write the same bytes.
 
 use glam::DVec3;
 
@@ -9,7 +9,7 @@ use super::OutlierMode;
 use super::normals::{self, NormalsAction};
 use crate::geometry::ExactSum;
 use crate::io::SourceInfo;
-use crate::points::{FLAG_NOISE, PointBatch, Schema};
+use crate::points::{FLAG_NOISE, PointBatch, PointNormal, Schema};
 
 /// The outlier threshold `mean + alpha·σ` from exact sums of the statistic and its square.
 pub fn threshold(sum: &ExactSum, sq: &ExactSum, alpha: f64) -> f64 {
@@ -35,6 +35,8 @@ pub struct Assembler {
     pub threshold: f64,
     /// Stored normal fields to clear (they would be stale).
     normals: Option<(Schema, [usize; 3])>,
+    /// Carry each point's written normal to the sink (`--write-normals`).
+    write_normals: bool,
 }
 
 impl Assembler {
@@ -45,12 +47,21 @@ impl Assembler {
             mode,
             threshold,
             normals: normals::normal_fields(&info.schema).map(|f| (info.schema.clone(), f)),
+            write_normals: false,
         }
+    }
+
+    /// These rules, carrying each point's written normal to the sink (`on`).
+    pub fn writing_normals(mut self, on: bool) -> Assembler {
+        self.write_normals = on;
+        self
     }
 
     /// What the output does with stored normals.
     pub fn normals_action(&self) -> NormalsAction {
-        if self.normals.is_some() {
+        if self.write_normals {
+            NormalsAction::Written
+        } else if self.normals.is_some() {
             NormalsAction::Cleared
         } else {
             NormalsAction::None
@@ -73,24 +84,31 @@ impl Assembler {
         }
     }
 
-    /// Appends a point to `out`, its stored normals cleared.
-    fn put(&self, out: &mut PointBatch, p: DVec3, record: &[u8]) {
+    /// Appends a point to `out`, its stored normals cleared, with `normal` when normals are
+    /// written.
+    fn put(&self, out: &mut PointBatch, p: DVec3, record: &[u8], normal: PointNormal) {
         out.push(p, record);
         if let Some((schema, f)) = &self.normals {
             let end = out.records.len();
             normals::clear_points(schema, *f, &mut out.records[end - schema.record_len..end]);
         }
+        if self.write_normals {
+            out.normals.push(normal);
+        }
     }
 
-    /// Appends input point `i` of `batch` to `out` given its result (None for non-finite points);
-    /// returns whether it was flagged or removed as an outlier.
+    /// Appends input point `i` of `batch` to `out` given its result (None for non-finite points)
+    /// and what the run computed for its normal (written with `--write-normals`; `None` for a
+    /// point without one); returns whether it was flagged or removed as an outlier.
     pub fn push(
         &self,
         batch: &PointBatch,
         i: usize,
         result: Option<(DVec3, f64)>,
+        normal: Option<PointNormal>,
         out: &mut PointBatch,
     ) -> bool {
+        let normal = normal.unwrap_or(PointNormal::NONE);
         let (p, outlier) = match result {
             None if !self.keep_non_finite => return false,
             None => (batch.positions[i], false),
@@ -103,11 +121,11 @@ impl Assembler {
             if self.keep_non_finite {
                 // An organized cloud keeps its image layout: a removed point becomes a NaN
                 // placeholder, as its invalid points are.
-                self.put(out, DVec3::NAN, batch.record(i));
+                self.put(out, DVec3::NAN, batch.record(i), PointNormal::NONE);
             }
             return true;
         }
-        self.put(out, p, batch.record(i));
+        self.put(out, p, batch.record(i), normal);
         if self.mode == OutlierMode::Classify {
             out.flags.push(if outlier { FLAG_NOISE } else { 0 });
         }
@@ -142,7 +160,7 @@ mod tests {
         for (i, r) in results.iter().enumerate() {
             assert_eq!(asm.writes(r.map(|r| r.1)), {
                 let before = out.len();
-                found += asm.push(&b, i, *r, &mut out) as u64;
+                found += asm.push(&b, i, *r, None, &mut out) as u64;
                 out.len() > before
             });
         }
@@ -164,6 +182,36 @@ mod tests {
         let (remove, found) = assemble(OutlierMode::Remove);
         assert_eq!(found, 1);
         assert_eq!(remove.positions, vec![DVec3::X]);
+    }
+
+    #[test]
+    fn issue9_written_normals_follow_their_points() {
+        let info = SourceInfo::generated(Format::Ply, ScalarType::F32, 3, None);
+        let n = |s: u8| PointNormal {
+            normal: [0.0, 0.0, 1.0],
+            curvature: 0.5,
+            structure: s,
+        };
+        let b = batch();
+        let results = [Some((DVec3::X, 0.1)), None, Some((DVec3::Y, 0.9))];
+        let normals = [Some(n(0)), None, Some(n(2))];
+        let run = |asm: Assembler| {
+            let mut out = PointBatch::with_capacity(12, 3);
+            for i in 0..3 {
+                asm.push(&b, i, results[i], normals[i], &mut out);
+            }
+            out
+        };
+        let off = run(Assembler::new(&info, OutlierMode::Off, 0.5));
+        assert!(off.normals.is_empty());
+        let on = Assembler::new(&info, OutlierMode::Remove, 0.5).writing_normals(true);
+        assert_eq!(on.normals_action(), NormalsAction::Written);
+        // The removed outlier takes its normal with it; the unprocessed point is dropped.
+        assert_eq!(run(on).normals, vec![n(0)]);
+        let on = Assembler::new(&info, OutlierMode::Classify, 0.5).writing_normals(true);
+        let out = run(on);
+        assert_eq!(out.normals, vec![n(0), n(2)]);
+        assert_eq!(out.len(), out.normals.len());
     }
 
     #[test]

@@ -13,7 +13,7 @@ use std::time::Instant;
 use cpu_time::ProcessTime;
 
 use super::{Job, PipelineError, Report, RunOptions, SpecError};
-use super::{bytes_per_point, check_mesh_options, memory, mesh, peak_rss_bytes, run_file};
+use super::{bytes_per_point, memory, mesh, peak_rss_bytes, run_file};
 use crate::denoise::Timer;
 use crate::io::{self, AtomicFile, Cloud, Format, Input};
 
@@ -40,6 +40,7 @@ pub fn run_bytes(
     opts: &RunOptions,
 ) -> Result<BytesOutput, PipelineError> {
     job.spec.validate()?;
+    super::refuse_normals_early(job)?;
     let (Some(input_format), Some(output_format)) = (job.input_format, job.output_format) else {
         return Err(PipelineError::Params(SpecError {
             field: "format",
@@ -66,9 +67,7 @@ pub fn run_bytes(
         drop(cloud);
         return spooled(again.open()?, job, opts);
     }
-    if mesh {
-        check_mesh_options(job)?;
-    }
+    job.spec.check_mesh(mesh)?;
     let (out, slot) = AtomicFile::memory(&job.output);
     let mut out = Some(out);
     let mut take = || out.take().expect("the in-memory drivers create one sink");

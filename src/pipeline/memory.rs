@@ -101,6 +101,7 @@ pub(crate) fn run_cloud(
         records,
         record_len: info.schema.record_len,
         flags: Vec::new(),
+        normals: Vec::new(),
     };
     let finite = |i: usize| in_range(input.positions[i]);
     let (mut sum, mut sq) = (ExactSum::new(), ExactSum::new());
@@ -112,7 +113,9 @@ pub(crate) fn run_cloud(
         &info,
         job.spec.outliers,
         threshold(&sum, &sq, job.spec.outlier_alpha),
-    );
+    )
+    .writing_normals(job.spec.params.write_normals);
+    let normal = |i: usize| result.normals.as_ref().map(|n| n[i]);
     let outcome = |i: usize| finite(i).then(|| (result.positions[i], result.knn_mean[i]));
     let count = (0..n)
         .filter(|&i| asm.writes(outcome(i).map(|(_, m)| m)))
@@ -122,7 +125,7 @@ pub(crate) fn run_cloud(
     let mut out = PointBatch::with_capacity(input.record_len, BATCH.min(n));
     let (mut found, mut written) = (0u64, 0u64);
     for i in 0..n {
-        found += asm.push(&input, i, outcome(i), &mut out) as u64;
+        found += asm.push(&input, i, outcome(i), normal(i), &mut out) as u64;
         if out.len() == BATCH {
             sink.write_batch(&out)?;
             written += out.len() as u64;

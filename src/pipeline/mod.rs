@@ -20,7 +20,9 @@
 //! the input is refused. An input that is a stream (`-`, `/dev/stdin` from a pipe, a FIFO) is
 //! first spooled to the temporary directory ([`crate::io::input`]), since the passes below read
 //! it more than once. Stored normals are recomputed (meshes) or cleared (clouds), never written
-//! stale (`normals`). Points of a point cloud that fail [`crate::points::in_range`] (a NaN or
+//! stale (`normals`); with `write_normals` a cloud gets the run's own normals, curvature and
+//! structure class as fields instead ([`crate::denoise::written`]), carried through the tiles'
+//! result records so both point paths write the same bytes. Points of a point cloud that fail [`crate::points::in_range`] (a NaN or
 //! infinite coordinate, or one beyond ±10¹², i.e. a corrupt record) are dropped and counted as
 //! they are read (organized PCD clouds keep them, unprocessed and unchanged). Outliers are
 //! flagged (keeping their input position) or removed as [`OutlierMode`] says.
@@ -88,7 +90,10 @@ pub fn bytes_per_point(params: &Params, record_len: usize) -> u64 {
         Method::Qem if params.schedule(false).filter > 0 => 8 * k + 112,
         _ => 0,
     };
-    (record_len + 4 * k + 240 + filter) as u64
+    // Written normals: the kernel's values, restored to input order and carried to the sink
+    // (`PointNormal`, 20 bytes, about three copies), and the last cycle's curvatures.
+    let normals = if params.write_normals { 72 } else { 0 };
+    (record_len + 4 * k + 240 + filter + normals) as u64
 }
 
 /// The in-memory driver's peak over [`bytes_per_point`]: the whole cloud's kernel working set
@@ -125,6 +130,7 @@ pub fn run(job: &Job, opts: &RunOptions) -> Result<Report, PipelineError> {
             path: job.output.clone(),
         });
     }
+    refuse_normals_early(job)?;
     // A stream (standard input, a pipe, a FIFO) is read more than once below: spool it first.
     let input = io::InputFile::open(&job.input, job.input_format, opts.temp_dir.as_deref())?;
     if input.is_spooled() {
@@ -140,23 +146,20 @@ pub fn run(job: &Job, opts: &RunOptions) -> Result<Report, PipelineError> {
     run_file(job, opts)
 }
 
-/// Refuses the options that apply to point clouds only (outliers, `--classes`) on a mesh.
-///
-/// # Errors
-/// [`PipelineError::Params`] naming the first such option set.
-fn check_mesh_options(job: &Job) -> Result<(), PipelineError> {
-    for (set, field) in [
-        (job.spec.outliers != OutlierMode::Off, "outliers"),
-        (job.spec.classes.is_some(), "classes"),
-    ] {
-        if set {
-            return Err(PipelineError::Params(SpecError {
-                field,
-                detail: "applies to point clouds, not meshes".into(),
-            }));
+/// Refuses written normals towards an output format that cannot hold them, before any work, when
+/// the format is known from the job or the output's extension (the sink refuses it otherwise).
+fn refuse_normals_early(job: &Job) -> Result<(), PipelineError> {
+    let format = job
+        .output_format
+        .or_else(|| io::Format::from_path(&job.output).ok());
+    match format.and_then(io::refuse_normals) {
+        Some(detail) if job.spec.params.write_normals => Err(io::IoError::Unsupported {
+            path: job.output.clone(),
+            detail: detail.into(),
         }
+        .into()),
+        _ => Ok(()),
     }
-    Ok(())
 }
 
 /// [`run`] on an input that is a file.
@@ -167,7 +170,7 @@ fn run_file(job: &Job, opts: &RunOptions) -> Result<Report, PipelineError> {
     let info = source.info().clone();
     drop(source);
     let mut report = if job.spec.params.mesh_mode(info.has_faces()) {
-        check_mesh_options(job)?;
+        job.spec.check_mesh(true)?;
         mesh::run(job)?
     } else {
         let per_point = bytes_per_point(&job.spec.params, info.schema.record_len);

@@ -15,7 +15,10 @@
 //! * **Point clouds: cleared** (NaN; 0 in an integer field), with a warning. A cloud's normals
 //!   would need a k-NN pass over the denoised points, which the tiled path does not have, and
 //!   both paths must write the same bytes. Recompute them downstream (PDAL `filters.normal`,
-//!   Open3D `estimate_normals`, PCL `NormalEstimation`).
+//!   Open3D `estimate_normals`, PCL `NormalEstimation`) — or ask for the run's own:
+//! * **Point clouds with `--write-normals`: written.** The normals of the run's last cycle
+//!   ([`crate::denoise::written`]) go into the stored normal fields (and new ones where the
+//!   input has none), so a stored set is replaced, never doubled.
 
 use glam::DVec3;
 
@@ -36,6 +39,9 @@ pub enum NormalsAction {
     Recomputed,
     /// Cleared to NaN (point clouds).
     Cleared,
+    /// The run's normals written as fields (point clouds with `--write-normals`), into the
+    /// stored ones where the input had them.
+    Written,
 }
 
 /// The per-point normal fields of `schema`: `nx ny nz` or `normal_x normal_y normal_z`.

@@ -94,6 +94,35 @@ impl DenoiseSpec {
         self.params.validate()?;
         validate_alpha(self.outlier_alpha)
     }
+
+    /// Refuses, for a run in mesh mode (`mesh`), the options that apply to point clouds only:
+    /// outlier handling and written normals (a mesh's stored normals are recomputed from its
+    /// faces instead).
+    ///
+    /// # Errors
+    /// [`SpecError`] naming `outliers` or `write_normals`.
+    pub fn check_mesh(&self, mesh: bool) -> Result<(), SpecError> {
+        let refuse = |field, extra: &str| {
+            Err(SpecError {
+                field,
+                detail: format!("applies to point clouds, not meshes{extra}"),
+            })
+        };
+        if !mesh {
+            Ok(())
+        } else if self.outliers != OutlierMode::Off {
+            refuse("outliers", "")
+        } else if self.classes.is_some() {
+            refuse("classes", "")
+        } else if self.params.write_normals {
+            refuse(
+                "write_normals",
+                " (a mesh's stored normals are recomputed from its faces)",
+            )
+        } else {
+            Ok(())
+        }
+    }
 }
 
 /// The outlier threshold's range (also the configuration's).
@@ -112,7 +141,8 @@ pub fn validate_alpha(alpha: f64) -> Result<(), SpecError> {
 }
 
 /// A request's choices, each optional (on the command line the booleans are the flags
-/// `--paper`, `--no-volume` and `--no-guard`: present sets the field, absent leaves it unset): the CLI flags (`qemd denoise --knn 8`), a job's `params`
+/// `--paper`, `--no-volume`, `--no-guard` and `--write-normals`: present sets the field, absent
+/// leaves it unset): the CLI flags (`qemd denoise --knn 8`), a job's `params`
 /// object, the synchronous endpoint's query string and the Python keywords all parse into it.
 /// Unset fields keep the base ([`Params::default`], or [`Params::paper`] with `paper`).
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
@@ -231,6 +261,16 @@ pub struct SpecOverlay {
     )]
     #[serde(skip_serializing_if = "Option::is_none")]
     pub classes: Option<ClassList>,
+    /// Point clouds: write each point's normal (oriented towards +z), surface variation and
+    /// structure class as extra fields (PLY nx ny nz curvature structure, PCD normal_x …, LAS
+    /// extra bytes NormalX …); fields of those names already in the input are overwritten.
+    /// Default off: the output keeps the input's schema.
+    #[cfg_attr(
+        feature = "cli",
+        arg(long = "write-normals", num_args = 0, default_missing_value = "true")
+    )]
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub write_normals: Option<bool>,
 }
 
 impl SpecOverlay {
@@ -262,6 +302,7 @@ impl SpecOverlay {
         set(&mut p.mu, self.mu);
         set(&mut p.volume, self.volume);
         set(&mut p.guard, self.guard);
+        set(&mut p.write_normals, self.write_normals);
         set(&mut p.rings, self.rings);
         set(&mut p.normals, self.normals);
         set(&mut p.solve, self.solve);
@@ -329,7 +370,8 @@ impl SpecOverlay {
             iterations,
             outliers,
             outlier_alpha,
-            classes
+            classes,
+            write_normals
         );
         Ok(self)
     }
@@ -391,7 +433,12 @@ mod tests {
 
     #[test]
     fn fields_are_the_params_and_the_outlier_options() {
-        let Ok(serde_json::Value::Object(params)) = serde_json::to_value(Params::default()) else {
+        // Every field of Params serialises when set (`write_normals` only when on).
+        let all = Params {
+            write_normals: true,
+            ..Params::default()
+        };
+        let Ok(serde_json::Value::Object(params)) = serde_json::to_value(all) else {
             panic!("Params is not an object");
         };
         let mut want: Vec<&str> = params.keys().map(String::as_str).collect();
@@ -519,7 +566,11 @@ mod tests {
     fn merge_takes_every_field() {
         // An overlay with every field set (the defaults' values, nulls made numbers) merged
         // over an empty one comes back whole: a field left out of `merge` would be dropped.
-        let Ok(serde_json::Value::Object(mut m)) = serde_json::to_value(Params::default()) else {
+        let all = Params {
+            write_normals: true,
+            ..Params::default()
+        };
+        let Ok(serde_json::Value::Object(mut m)) = serde_json::to_value(all) else {
             panic!("Params is not an object");
         };
         for v in m.values_mut() {
@@ -551,5 +602,20 @@ mod tests {
         assert_eq!(s.params.iterations, 3);
         assert_eq!(s.outliers, OutlierMode::Classify);
         assert_eq!(s.outlier_alpha, 2.5);
+        assert!(!s.params.write_normals);
+    }
+
+    #[test]
+    fn issue9_write_normals_is_off_by_default_and_stored_only_when_on() {
+        let off = SpecOverlay::default().resolve(2.0).unwrap();
+        assert!(!off.params.write_normals);
+        // A spec without it serialises as before (stored jobs, reports, frozen scale-out jobs).
+        let text = serde_json::to_string(&off).unwrap();
+        assert!(!text.contains("write_normals"), "{text}");
+        let on: SpecOverlay = serde_json::from_str(r#"{"write_normals": true}"#).unwrap();
+        let on = on.resolve(2.0).unwrap();
+        assert!(on.params.write_normals);
+        let back: DenoiseSpec = serde_json::from_str(&serde_json::to_string(&on).unwrap()).unwrap();
+        assert_eq!(back, on);
     }
 }

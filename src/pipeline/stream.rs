@@ -9,6 +9,7 @@ use crate::points::PointBatch;
 pub(crate) fn sink_options(job: &Job, opts: &RunOptions) -> SinkOptions {
     SinkOptions {
         noise_flag: job.spec.outliers == OutlierMode::Classify,
+        normals: job.spec.params.write_normals,
         temp_dir: opts.temp_dir.clone(),
     }
 }

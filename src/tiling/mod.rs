@@ -265,6 +265,7 @@ pub fn process_tile(
                     index: p.index,
                     p: r.positions[i],
                     knn_mean: m,
+                    normal: r.normals.as_ref().map(|n| n[i]),
                 });
             }
             Ok((part, r.exact))

@@ -6,6 +6,8 @@
 //!  spill  tile_<t>.pts   [ index|HALO<<63|HELD<<62 : u64 | x : f64 | y : f64 | z : f64 ]   32 bytes
 //!  result tile_<t>.res   [ index : u64 | x : f64 | y : f64 | z : f64 | knn_mean : f64 ] 40 bytes,
 //!                        sorted by index, written atomically: a result file is a checkpoint
+//!          with normals  [ … 40 bytes as above | nx ny nz curvature : f32 | structure : u8 | 0 × 7 ]
+//!                        64 bytes, only when the run writes normals (`--write-normals`)
 //! ```
 
 use std::cmp::Reverse;
@@ -21,11 +23,23 @@ use rayon::prelude::*;
 use super::TilingError;
 use super::workdir::{merge_path, result_path, spill_path};
 use crate::io::AtomicFile;
+use crate::points::PointNormal;
 
 /// Bytes per spill record.
 pub const SPILL_RECORD: usize = 32;
 /// Bytes per result record.
 pub const RESULT_RECORD: usize = 40;
+/// Bytes per result record of a run that writes normals ([`TileResult::normal`]).
+pub const RESULT_RECORD_NORMALS: usize = 64;
+
+/// Bytes per result record of a run that writes normals (`normals`) or not.
+pub const fn result_record(normals: bool) -> usize {
+    if normals {
+        RESULT_RECORD_NORMALS
+    } else {
+        RESULT_RECORD
+    }
+}
 /// Bit 63 of a spill record's index: the point is a halo copy, owned by another tile.
 const HALO: u64 = 1 << 63;
 /// Bit 62 of a spill record's index: the point keeps its position (`--classes`). Global indices
@@ -201,19 +215,45 @@ pub struct TileResult {
     pub p: DVec3,
     /// Mean distance to the other members of its k-NN list.
     pub knn_mean: f64,
+    /// What the output writes for it, in a run that writes normals.
+    pub normal: Option<PointNormal>,
 }
 
 /// Files a merge keeps open at once.
 pub const MAX_OPEN: usize = 256;
 
-fn encode(r: &TileResult) -> [u8; RESULT_RECORD] {
-    let mut rec = [0u8; RESULT_RECORD];
+/// The record of `r`: its bytes and their length (40, or 64 with a normal).
+fn encode(r: &TileResult) -> ([u8; RESULT_RECORD_NORMALS], usize) {
+    let mut rec = [0u8; RESULT_RECORD_NORMALS];
     rec[0..8].copy_from_slice(&r.index.to_le_bytes());
     rec[8..16].copy_from_slice(&r.p.x.to_le_bytes());
     rec[16..24].copy_from_slice(&r.p.y.to_le_bytes());
     rec[24..32].copy_from_slice(&r.p.z.to_le_bytes());
     rec[32..40].copy_from_slice(&r.knn_mean.to_le_bytes());
-    rec
+    let Some(n) = r.normal else {
+        return (rec, RESULT_RECORD);
+    };
+    for (k, v) in n.normal.into_iter().chain([n.curvature]).enumerate() {
+        rec[40 + 4 * k..44 + 4 * k].copy_from_slice(&v.to_le_bytes());
+    }
+    rec[56] = n.structure;
+    (rec, RESULT_RECORD_NORMALS)
+}
+
+/// Decodes one record of `rec.len()` bytes ([`result_record`]).
+fn decode(rec: &[u8]) -> TileResult {
+    let f = |o: usize| f64::from_le_bytes(rec[o..o + 8].try_into().expect("8 bytes"));
+    let g = |o: usize| f32::from_le_bytes(rec[o..o + 4].try_into().expect("4 bytes"));
+    TileResult {
+        index: u64::from_le_bytes(rec[0..8].try_into().expect("8 bytes")),
+        p: DVec3::new(f(8), f(16), f(24)),
+        knn_mean: f(32),
+        normal: (rec.len() == RESULT_RECORD_NORMALS).then(|| PointNormal {
+            normal: [g(40), g(44), g(48)],
+            curvature: g(52),
+            structure: rec[56],
+        }),
+    }
 }
 
 /// Writes tile `t`'s results (sorted here by index) atomically: the file appears only complete.
@@ -224,17 +264,25 @@ pub fn write_results(dir: &Path, t: usize, results: &mut [TileResult]) -> Result
     results.par_sort_unstable_by_key(|r| r.index);
     let path = result_path(dir, t);
     let mut f = AtomicFile::create(&path).map_err(|e| TilingError::Result(Box::new(e)))?;
-    let bytes: Vec<u8> = results.par_iter().flat_map_iter(encode).collect();
+    let bytes: Vec<u8> = results
+        .par_iter()
+        .flat_map_iter(|r| {
+            let (rec, n) = encode(r);
+            rec.into_iter().take(n)
+        })
+        .collect();
     f.write_all(&bytes).map_err(|e| err(&path, e))?;
     f.commit_unsynced()
         .map_err(|e| TilingError::Result(Box::new(e)))?;
-    Ok((results.len() * RESULT_RECORD) as u64)
+    Ok(bytes.len() as u64)
 }
 
 struct Cursor {
     path: PathBuf,
     reader: BufReader<File>,
     left: u64,
+    /// Bytes per record.
+    record: usize,
 }
 
 impl Cursor {
@@ -243,16 +291,12 @@ impl Cursor {
             return Ok(None);
         }
         self.left -= 1;
-        let mut rec = [0u8; RESULT_RECORD];
+        let mut rec = [0u8; RESULT_RECORD_NORMALS];
+        let rec = &mut rec[..self.record];
         self.reader
-            .read_exact(&mut rec)
+            .read_exact(rec)
             .map_err(|e| err(&self.path, e))?;
-        let f = |o: usize| f64::from_le_bytes(rec[o..o + 8].try_into().expect("8 bytes"));
-        Ok(Some(TileResult {
-            index: u64::from_le_bytes(rec[0..8].try_into().expect("8 bytes")),
-            p: DVec3::new(f(8), f(16), f(24)),
-            knn_mean: f(32),
-        }))
+        Ok(Some(decode(rec)))
     }
 }
 
@@ -264,23 +308,26 @@ pub struct ResultMerge {
 }
 
 impl ResultMerge {
-    /// Opens the result files of tiles `0..tiles` in `dir`. Beyond [`MAX_OPEN`] tiles, groups of
-    /// result files are first merged into intermediate files in `dir`, so the merge never holds
-    /// more than [`MAX_OPEN`] files open.
+    /// Opens the result files of tiles `0..tiles` in `dir`, whose records hold normals
+    /// (`normals`, [`result_record`]) or not. Beyond [`MAX_OPEN`] tiles, groups of result files
+    /// are first merged into intermediate files in `dir`, so the merge never holds more than
+    /// [`MAX_OPEN`] files open.
     ///
     /// # Errors
     /// A missing or truncated result file.
-    pub fn open(dir: &Path, tiles: usize) -> Result<ResultMerge, TilingError> {
+    pub fn open(dir: &Path, tiles: usize, normals: bool) -> Result<ResultMerge, TilingError> {
+        let record = result_record(normals);
         let mut paths: Vec<PathBuf> = (0..tiles).map(|t| result_path(dir, t)).collect();
         let mut level = 0;
         while paths.len() > MAX_OPEN {
             let mut next = Vec::new();
             for (g, group) in paths.chunks(MAX_OPEN).enumerate() {
                 let path = merge_path(dir, level, g);
-                let mut m = ResultMerge::from_paths(group)?;
+                let mut m = ResultMerge::from_paths(group, record)?;
                 let mut w = BufWriter::new(File::create(&path).map_err(|e| err(&path, e))?);
                 while let Some(r) = m.next_result()? {
-                    w.write_all(&encode(&r)).map_err(|e| err(&path, e))?;
+                    let (rec, n) = encode(&r);
+                    w.write_all(&rec[..n]).map_err(|e| err(&path, e))?;
                 }
                 w.into_inner().map_err(|e| err(&path, e.into_error()))?;
                 next.push(path);
@@ -288,24 +335,25 @@ impl ResultMerge {
             paths = next;
             level += 1;
         }
-        ResultMerge::from_paths(&paths)
+        ResultMerge::from_paths(&paths, record)
     }
 
-    fn from_paths(paths: &[PathBuf]) -> Result<ResultMerge, TilingError> {
+    fn from_paths(paths: &[PathBuf], record: usize) -> Result<ResultMerge, TilingError> {
         let mut cursors = Vec::with_capacity(paths.len());
         for path in paths {
             let f = File::open(path).map_err(|e| err(path, e))?;
             let len = f.metadata().map_err(|e| err(path, e))?.len();
-            if len % RESULT_RECORD as u64 != 0 {
+            if len % record as u64 != 0 {
                 return Err(TilingError::Corrupt {
                     path: path.clone(),
-                    detail: format!("{len} bytes is not a whole number of records"),
+                    detail: format!("{len} bytes is not a whole number of {record}-byte records"),
                 });
             }
             cursors.push(Cursor {
                 path: path.clone(),
                 reader: BufReader::with_capacity(1 << 16, f),
-                left: len / RESULT_RECORD as u64,
+                left: len / record as u64,
+                record,
             });
         }
         let n = cursors.len();
@@ -372,10 +420,11 @@ mod tests {
             index: i,
             p: DVec3::splat(i as f64),
             knn_mean: 0.5,
+            normal: None,
         };
         write_results(dir.path(), 0, &mut [r(7), r(1), r(4)]).unwrap();
         write_results(dir.path(), 1, &mut [r(3), r(0), r(9)]).unwrap();
-        let mut m = ResultMerge::open(dir.path(), 2).unwrap();
+        let mut m = ResultMerge::open(dir.path(), 2, false).unwrap();
         let mut got = Vec::new();
         while let Some(x) = m.next_result().unwrap() {
             got.push(x.index);
@@ -395,14 +444,32 @@ mod tests {
                 index: (tiles - 1 - t) as u64,
                 p: DVec3::ZERO,
                 knn_mean: 0.0,
+                normal: Some(PointNormal {
+                    normal: [0.0, -0.5, t as f32],
+                    curvature: 0.25,
+                    structure: (t % 6) as u8,
+                }),
             }];
-            write_results(dir.path(), t, &mut rs).unwrap();
+            assert_eq!(
+                write_results(dir.path(), t, &mut rs).unwrap(),
+                RESULT_RECORD_NORMALS as u64
+            );
         }
         w.finish().unwrap();
-        let mut m = ResultMerge::open(dir.path(), tiles).unwrap();
+        let mut m = ResultMerge::open(dir.path(), tiles, true).unwrap();
         for want in 0..tiles as u64 {
-            assert_eq!(m.next_result().unwrap().unwrap().index, want);
+            let r = m.next_result().unwrap().unwrap();
+            assert_eq!(r.index, want);
+            let t = tiles - 1 - want as usize;
+            let n = r.normal.unwrap();
+            assert_eq!((n.normal, n.curvature), ([0.0, -0.5, t as f32], 0.25));
+            assert_eq!(n.structure, (t % 6) as u8);
         }
         assert!(m.next_result().unwrap().is_none());
+        // Read as records without normals, the files do not divide: refused.
+        assert!(matches!(
+            ResultMerge::open(dir.path(), 3, false),
+            Err(TilingError::Corrupt { .. })
+        ));
     }
 }

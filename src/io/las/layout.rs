@@ -277,6 +277,76 @@ pub(crate) fn schema(format: u8, record_len: usize, extra_vlr: Option<&[u8]>) ->
     Schema::new(fields, record_len, Endian::Little).expect("x, y, z fit in every LAS record")
 }
 
+/// What a sink that appends extra bytes to a record needs to know of the existing ones.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub(crate) struct ExtraLayout {
+    /// The descriptors [`schema`] reads (those before the first it stops at), as raw bytes.
+    pub descriptors: Vec<u8>,
+    /// First byte after the bytes they describe (the base record length when there are none).
+    pub end: usize,
+    /// `(offset, scale, offset)` of every field whose descriptor sets a scale or an offset
+    /// (options bits 3 and 4): its stored value is `(value − offset) / scale`.
+    pub scaled: Vec<(usize, f64, f64)>,
+}
+
+/// The [`ExtraLayout`] of a record of `format` and `record_len` bytes described by the Extra
+/// Bytes VLR payload `extra_vlr`: the same walk as [`schema`].
+pub(crate) fn extra_layout(format: u8, record_len: usize, extra_vlr: Option<&[u8]>) -> ExtraLayout {
+    let mut at = BASE_LEN[usize::from(format)];
+    let mut out = ExtraLayout::default();
+    for d in extra_vlr
+        .unwrap_or(&[])
+        .chunks_exact(EXTRA_BYTES_DESCRIPTOR)
+    {
+        let code = d[2];
+        let (ty, count) = match code {
+            0 => (ScalarType::U8, usize::from(d[3])),
+            1..=10 => (extra_type(code).expect("1..=10"), 1),
+            11..=30 => (
+                extra_type((code - 1) % 10 + 1).expect("1..=10"),
+                usize::from((code - 1) / 10 + 1),
+            ),
+            _ => break,
+        };
+        if count == 0 || at + count * ty.size() > record_len {
+            break;
+        }
+        let options = d[3];
+        for i in 0..count {
+            if code != 0 && options & 0x18 != 0 {
+                let scale = if options & 0x08 != 0 {
+                    get_f64(d, 112 + 8 * i)
+                } else {
+                    1.0
+                };
+                let offset = if options & 0x10 != 0 {
+                    get_f64(d, 136 + 8 * i)
+                } else {
+                    0.0
+                };
+                // A zero or non-finite scale stores nothing usable: take the value as it is.
+                let scale = if scale.is_finite() && scale != 0.0 {
+                    scale
+                } else {
+                    1.0
+                };
+                out.scaled.push((at, scale, offset));
+            }
+            at += ty.size();
+        }
+        out.descriptors.extend_from_slice(d);
+    }
+    out.end = at;
+    out
+}
+
+/// An Extra Bytes descriptor of `n` (1–255) undocumented bytes (`data_type` 0).
+pub(crate) fn undocumented_descriptor(n: u8) -> [u8; EXTRA_BYTES_DESCRIPTOR] {
+    let mut d = [0u8; EXTRA_BYTES_DESCRIPTOR];
+    d[3] = n;
+    d
+}
+
 /// One Extra Bytes descriptor for a scalar field named `name`.
 pub(crate) fn extra_descriptor(name: &str, ty: ScalarType) -> [u8; EXTRA_BYTES_DESCRIPTOR] {
     let mut d = [0u8; EXTRA_BYTES_DESCRIPTOR];
@@ -378,5 +448,27 @@ mod tests {
         // No VLR: every extra byte is a u8.
         let s = schema(6, 32, None);
         assert_eq!(s.fields.last().unwrap().name, "extra_1");
+    }
+
+    #[test]
+    fn issue9_extra_layout_walks_as_the_schema_does() {
+        let mut vlr = Vec::new();
+        vlr.extend_from_slice(&extra_descriptor("height", ScalarType::F32));
+        let mut scaled = extra_descriptor("NormalX", ScalarType::I16);
+        scaled[3] = 0x18;
+        put(&mut scaled, 112, &(1.0f64 / 32767.0).to_le_bytes());
+        put(&mut scaled, 136, &0.5f64.to_le_bytes());
+        vlr.extend_from_slice(&scaled);
+        vlr.extend_from_slice(&undocumented_descriptor(3));
+        // Describes 9 of the 11 extra bytes; a last descriptor that does not fit is dropped.
+        vlr.extend_from_slice(&extra_descriptor("far", ScalarType::F64));
+        let l = extra_layout(0, 20 + 11, Some(&vlr));
+        assert_eq!(l.end, 20 + 9);
+        assert_eq!(l.descriptors, vlr[..3 * EXTRA_BYTES_DESCRIPTOR]);
+        assert_eq!(l.scaled, vec![(24, 1.0 / 32767.0, 0.5)]);
+        let s = schema(0, 20 + 11, Some(&vlr));
+        let first_unnamed = s.fields.iter().find(|f| f.name == "extra_9").unwrap();
+        assert_eq!(first_unnamed.offset, l.end);
+        assert_eq!(extra_layout(6, 30, None).end, 30);
     }
 }

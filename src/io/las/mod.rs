@@ -102,6 +102,24 @@
 //! 0–5: the low 5 bits of the classification byte, keeping the synthetic/key-point/withheld bits;
 //! PDRF 6–10: the classification byte); other points keep theirs.
 //!
+//! # Normals
+//!
+//! With [`SinkOptions::normals`] every record carries the written normal, surface variation and
+//! class as extra bytes `NormalX`, `NormalY`, `NormalZ`, `Curvature` (`float`, data type 9; the
+//! names PDAL's `filters.normal` gives its dimensions) and `Structure` (`unsigned char`, 1):
+//!
+//! * an extra-bytes field that already holds one of them (by name: `NormalX`, `nx`, `normal_x`,
+//!   …) is written in place, in its type, through its descriptor's scale and offset when it has
+//!   them (a normal stored as a scaled `short`, say);
+//! * the others are appended to the record: their descriptors go at the end of the Extra Bytes
+//!   VLR (LASF_Spec, record 4; added when the file has none), after a `data_type 0` descriptor
+//!   for any extra bytes the VLR did not describe, so each descriptor still names its bytes; the
+//!   record length in the header grows, and LAZ output gets a LASzip VLR built for the new
+//!   length instead of the source's;
+//! * a foreign source's fields become extra bytes as above, and the five follow them.
+//!
+//! COPC output goes through the same sink, so it carries the same extra bytes.
+//!
 //! The sink writes through an [`AtomicFile`] (temporary file, renamed at [`Sink::finish`] after
 //! the announced count is checked): nothing is left behind on error.
 //!
@@ -110,6 +128,7 @@
 //! [`Meta::Las`]: crate::io::Meta::Las
 //! [`Meta::None`]: crate::io::Meta::None
 //! [`SinkOptions::noise_flag`]: crate::io::SinkOptions::noise_flag
+//! [`SinkOptions::normals`]: crate::io::SinkOptions::normals
 //! [`FLAG_NOISE`]: crate::points::FLAG_NOISE
 //! [`AtomicFile`]: crate::io::AtomicFile
 //! [`Sink::finish`]: crate::io::Sink::finish

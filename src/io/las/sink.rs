@@ -15,9 +15,10 @@ use super::layout::{
 use super::{LASZIP_RECORD, LASZIP_USER, LAZ_CHUNK_SIZE, LasMeta, LasVlr, Piece, laz_error};
 use crate::io::tally::{Tally, check_batch};
 use crate::io::{
-    AtomicFile, Extras, Format, IoError, Meta, Sink, SinkOptions, SourceInfo, Trailer,
+    AtomicFile, Extras, Format, IoError, Meta, NormalField, NormalNames, Sink, SinkOptions,
+    SourceInfo, Trailer,
 };
-use crate::points::{Endian, FLAG_NOISE, PointBatch, Schema};
+use crate::points::{Endian, FLAG_NOISE, PointBatch, ScalarType, Schema, write_scalar};
 
 /// Where the points go: straight to the file, or through a LAZ compressor.
 enum Out {
@@ -27,7 +28,8 @@ enum Out {
 
 /// How records of the source become LAS records.
 enum Conv {
-    /// The source record is a LAS record of this layout: copy it, rewrite X, Y, Z.
+    /// The source record is a LAS record of this layout, possibly followed by extra bytes the
+    /// sink appends (written normals): copy it, zero the rest, rewrite X, Y, Z.
     Same,
     /// Another layout: a fresh PDRF 6–8 record; `(source field, target offset)` per extra
     /// field, `(source field, slot)` per field mapped onto a core dimension.
@@ -49,6 +51,35 @@ struct Plan {
     legacy: bool,
     /// The LASzip VLR of compressed output.
     laz: Option<LazVlr>,
+    /// Where the written normals go ([`SinkOptions::normals`]).
+    normals: Vec<NormalSlot>,
+}
+
+/// Where one written normal value goes in an output record: a scalar extra-bytes field at
+/// `offset` of type `ty`, storing `(value − add) / scale` (1 and 0 unless the field's
+/// descriptor scales it).
+#[derive(Debug, Clone, Copy)]
+struct NormalSlot {
+    offset: usize,
+    ty: ScalarType,
+    scale: f64,
+    add: f64,
+    field: NormalField,
+}
+
+/// The Extra Bytes VLR (LASF_Spec, record 4) with `payload`, or an error when it does not fit a
+/// VLR's 16-bit length.
+fn extra_bytes_vlr(path: &Path, description: &str, payload: &[u8]) -> Result<Vec<u8>, IoError> {
+    if payload.len() > usize::from(u16::MAX) {
+        return Err(IoError::Unsupported {
+            path: path.to_path_buf(),
+            detail: format!(
+                "{} extra-bytes descriptors do not fit one Extra Bytes VLR",
+                payload.len() / 192
+            ),
+        });
+    }
+    Ok(vlr_bytes("LASF_Spec", 4, description, payload, false))
 }
 
 /// Scale and offset of X, Y, Z.
@@ -72,6 +103,8 @@ pub struct LasSink {
     /// Fill the legacy (32-bit) point counts.
     legacy: bool,
     noise: bool,
+    /// Where the written normals go.
+    normals: Vec<NormalSlot>,
     /// Start of the waveform data packet record in the source (0 if none).
     source_waveform: u64,
     tally: Tally,
@@ -261,9 +294,10 @@ impl LasSink {
             frame,
             legacy,
             laz,
+            normals,
         } = match source {
-            Some(m) => Self::like_las(path, m, compress)?,
-            None => Self::fresh(path, &like.schema, compress)?,
+            Some(m) => Self::like_las(path, m, &like.schema, compress, options.normals)?,
+            None => Self::fresh(path, &like.schema, compress, options.normals)?,
         };
         let minor = header[at::VERSION + 1];
         let format = header[at::FORMAT] & 0x3f;
@@ -305,6 +339,7 @@ impl LasSink {
             like: like.schema.clone(),
             legacy,
             noise: options.noise_flag,
+            normals,
             source_waveform,
             tally: Tally::new(count),
             by_return: [0; 15],
@@ -315,15 +350,88 @@ impl LasSink {
         })
     }
 
-    /// The plan for a LAS source: its header and VLRs.
-    fn like_las(path: &Path, m: &LasMeta, compress: bool) -> Result<Plan, IoError> {
+    /// The plan for a LAS source: its header and VLRs; with `normals`, the normal fields the
+    /// record already has (by name, [`NormalField::aliases`]) and extra bytes for the others,
+    /// described in the Extra Bytes VLR (extended, or added).
+    fn like_las(
+        path: &Path,
+        m: &LasMeta,
+        schema: &Schema,
+        compress: bool,
+        normals: bool,
+    ) -> Result<Plan, IoError> {
         let mut header = m.header.clone();
         let mut block = Vec::new();
         let mut n = 0u32;
         let mut laz = None;
+        let eb = m.vlrs.iter().find(|v| v.is("LASF_Spec", 4));
+        let extra = layout::extra_layout(m.format, m.record_len, eb.map(|v| v.data()));
+        let mut slots = Vec::new();
+        let mut payload = extra.descriptors.clone();
+        let mut record_len = m.record_len;
+        if normals {
+            // Bytes past the described ones get an undocumented descriptor first, so the new
+            // descriptors describe the bytes they are for.
+            let mut gap = m.record_len - extra.end;
+            while gap > 0 {
+                let k = gap.min(255);
+                payload.extend_from_slice(&layout::undocumented_descriptor(k as u8));
+                gap -= k;
+            }
+            for f in NormalField::ALL {
+                let slot = match f.find(schema) {
+                    Some(i) => {
+                        let field = &schema.fields[i];
+                        let (scale, add) = extra
+                            .scaled
+                            .iter()
+                            .find(|s| s.0 == field.offset)
+                            .map_or((1.0, 0.0), |s| (s.1, s.2));
+                        NormalSlot {
+                            offset: field.offset,
+                            ty: field.ty,
+                            scale,
+                            add,
+                            field: f,
+                        }
+                    }
+                    None => {
+                        payload.extend_from_slice(&layout::extra_descriptor(
+                            f.name(NormalNames::Las),
+                            f.ty(),
+                        ));
+                        record_len += f.ty().size();
+                        NormalSlot {
+                            offset: record_len - f.ty().size(),
+                            ty: f.ty(),
+                            scale: 1.0,
+                            add: 0.0,
+                            field: f,
+                        }
+                    }
+                };
+                slots.push(slot);
+            }
+        }
+        let grown = record_len != m.record_len;
+        let record_len16 = u16::try_from(record_len).map_err(|_| IoError::Unsupported {
+            path: path.to_path_buf(),
+            detail: format!("a {record_len}-byte LAS point record (the limit is 65535)"),
+        })?;
+        let mut eb_written = false;
         for v in m.vlrs.iter().filter(|v| !v.is_copc_layout()) {
+            if grown && v.is("LASF_Spec", 4) {
+                if !eb_written {
+                    block.extend(extra_bytes_vlr(path, &v.description(), &payload)?);
+                    n += 1;
+                    eb_written = true;
+                }
+                continue;
+            }
             if v.is_laszip() {
+                // A record that grows needs a LASzip VLR for its new length.
                 if compress
+                    && !grown
                     && laz.is_none()
                     && let Some((raw, vlr)) = reusable_laszip(v)
                 {
@@ -336,13 +444,19 @@ impl LasSink {
             block.extend_from_slice(&v.raw);
             n += 1;
         }
+        if grown && !eb_written {
+            block.extend(extra_bytes_vlr(path, "Extra Bytes", &payload)?);
+            n += 1;
+        }
         if compress && laz.is_none() {
-            let (raw, vlr) = new_laszip(path, m.format, m.extra_bytes())?;
+            let extra_bytes = record_len - BASE_LEN[usize::from(m.format)];
+            let (raw, vlr) = new_laszip(path, m.format, extra_bytes)?;
             block.extend_from_slice(&raw);
             n += 1;
             laz = Some(vlr);
         }
         block.extend_from_slice(&m.vlr_padding);
+        put(&mut header, at::RECORD_LEN, &record_len16.to_le_bytes());
         header[at::FORMAT] = match (compress, m.compressed) {
             (true, true) | (false, false) => header[at::FORMAT],
             (true, false) => m.format | 0x80,
@@ -361,12 +475,14 @@ impl LasSink {
             frame: Some(frame),
             legacy,
             laz,
+            normals: slots,
         })
     }
 
     /// The plan for a source of another format: LAS 1.4 PDRF 6 plus one extra field per non-xyz
-    /// field of `schema`.
-    fn fresh(path: &Path, schema: &Schema, compress: bool) -> Result<Plan, IoError> {
+    /// field of `schema`; with `normals`, the normal fields among them (by name) and extra bytes
+    /// for the others.
+    fn fresh(path: &Path, schema: &Schema, compress: bool, normals: bool) -> Result<Plan, IoError> {
         let mapping = foreign::map(schema);
         let format = mapping.format;
         let base = BASE_LEN[usize::from(format)];
@@ -378,6 +494,30 @@ impl LasSink {
             extras.push((*i, at_));
             descriptors.extend_from_slice(&layout::extra_descriptor(name, f.ty));
             at_ += f.ty.size();
+        }
+        let mut slots = Vec::new();
+        for f in NormalField::ALL.iter().filter(|_| normals) {
+            let existing = f
+                .find(schema)
+                .and_then(|i| extras.iter().find(|e| e.0 == i).map(|e| (e.1, i)));
+            let (offset, ty) = match existing {
+                Some((offset, i)) => (offset, schema.fields[i].ty),
+                None => {
+                    descriptors.extend_from_slice(&layout::extra_descriptor(
+                        f.name(NormalNames::Las),
+                        f.ty(),
+                    ));
+                    at_ += f.ty().size();
+                    (at_ - f.ty().size(), f.ty())
+                }
+            };
+            slots.push(NormalSlot {
+                offset,
+                ty,
+                scale: 1.0,
+                add: 0.0,
+                field: *f,
+            });
         }
         let record_len = u16::try_from(at_).map_err(|_| IoError::Unsupported {
             path: path.to_path_buf(),
@@ -438,6 +578,7 @@ impl LasSink {
             frame: None,
             legacy: false,
             laz,
+            normals: slots,
         })
     }
 
@@ -476,7 +617,10 @@ impl Sink for LasSink {
             let start = self.buf.len();
             let src = batch.record(i);
             match &self.conv {
-                Conv::Same => self.buf.extend_from_slice(src),
+                Conv::Same => {
+                    self.buf.extend_from_slice(src);
+                    self.buf.resize(start + rl, 0);
+                }
                 Conv::Foreign(extras, core) => {
                     self.buf.resize(start + rl, 0);
                     for &(f, to) in extras {
@@ -534,6 +678,14 @@ impl Sink for LasSink {
                 } else {
                     (rec[class_at] & 0xe0) | 7
                 };
+            }
+            if !self.normals.is_empty() {
+                let n = batch.normal(i);
+                for s in &self.normals {
+                    let v = (s.field.value(&n) - s.add) / s.scale;
+                    let end = s.offset + s.ty.size();
+                    write_scalar(&mut rec[s.offset..end], s.ty, Endian::Little, v);
+                }
             }
             let r = return_number(self.format, rec);
             if (1..=15).contains(&r) {

@@ -322,7 +322,7 @@ impl Header {
     ///
     /// Unchanged lines are copied byte for byte. When `count` differs from the header's point
     /// count, the cloud is written unorganized: `WIDTH count`, `HEIGHT 1`, `POINTS count`.
-    pub(super) fn render(&self, count: u64, data: PcdData, append: Option<&PcdField>) -> Vec<u8> {
+    pub(super) fn render(&self, count: u64, data: PcdData, append: &[PcdField]) -> Vec<u8> {
         let mut out = Vec::with_capacity(self.byte_len() as usize + 64);
         let resized = count != self.points;
         for line in &self.lines {
@@ -334,21 +334,24 @@ impl Header {
                 out.extend_from_slice(value.as_bytes());
                 out.extend_from_slice(eol);
             };
-            let extend = |token: String, out: &mut Vec<u8>| {
+            let extend = |token: &dyn Fn(&PcdField) -> String, out: &mut Vec<u8>| {
                 out.extend_from_slice(content.trim_ascii_end());
-                out.push(b' ');
-                out.extend_from_slice(token.as_bytes());
+                for f in append {
+                    out.push(b' ');
+                    out.extend_from_slice(token(f).as_bytes());
+                }
                 out.extend_from_slice(eol);
             };
-            match (line.key, append) {
-                (Some(Key::Fields), Some(f)) => extend(f.name.clone(), &mut out),
-                (Some(Key::Size), Some(f)) => extend(f.ty.size().to_string(), &mut out),
-                (Some(Key::Type), Some(f)) => extend(f.type_letter().to_string(), &mut out),
-                (Some(Key::Count), Some(f)) => extend(f.count.to_string(), &mut out),
-                (Some(Key::Width), _) if resized => replace(count.to_string(), &mut out),
-                (Some(Key::Height), _) if resized => replace("1".into(), &mut out),
-                (Some(Key::Points), _) if resized => replace(count.to_string(), &mut out),
-                (Some(Key::Data), _) if data != self.data => {
+            let appended = !append.is_empty();
+            match line.key {
+                Some(Key::Fields) if appended => extend(&|f| f.name.clone(), &mut out),
+                Some(Key::Size) if appended => extend(&|f| f.ty.size().to_string(), &mut out),
+                Some(Key::Type) if appended => extend(&|f| f.type_letter().to_string(), &mut out),
+                Some(Key::Count) if appended => extend(&|f| f.count.to_string(), &mut out),
+                Some(Key::Width) if resized => replace(count.to_string(), &mut out),
+                Some(Key::Height) if resized => replace("1".into(), &mut out),
+                Some(Key::Points) if resized => replace(count.to_string(), &mut out),
+                Some(Key::Data) if data != self.data => {
                     replace(data.keyword().to_string(), &mut out)
                 }
                 _ => out.extend_from_slice(&line.raw),
@@ -661,9 +664,9 @@ mod io_pcd {
     #[test]
     fn render_keeps_unchanged_lines_and_rewrites_changed_ones() {
         let h = parse(HEAD).unwrap();
-        assert_eq!(h.render(4, PcdData::Ascii, None), HEAD.as_bytes());
+        assert_eq!(h.render(4, PcdData::Ascii, &[]), HEAD.as_bytes());
         let noise = PcdField::new("noise", ScalarType::U8, 1);
-        let out = String::from_utf8(h.render(3, PcdData::Binary, Some(&noise))).unwrap();
+        let out = String::from_utf8(h.render(3, PcdData::Binary, &[noise])).unwrap();
         assert!(out.contains("FIELDS x y z normal noise\n"), "{out}");
         assert!(
             out.contains("SIZE 4 4 4 4 1\nTYPE F F F F U\nCOUNT 1 1 1 3 1\n"),
@@ -680,7 +683,7 @@ mod io_pcd {
         let text = "FIELDS x y z\r\nSIZE 4 4 4\r\nTYPE F F F\r\nWIDTH 0\r\nDATA binary_compressed";
         let h = parse(text).unwrap();
         assert_eq!(h.points, 0);
-        let out = h.render(0, PcdData::BinaryCompressed, None);
+        let out = h.render(0, PcdData::BinaryCompressed, &[]);
         assert!(out.ends_with(b"DATA binary_compressed\n"), "{out:?}");
         let mut written = out.clone();
         written.extend_from_slice(&[0u8; 8]);

@@ -44,6 +44,10 @@
 //! * **Noise flag.** With [`SinkOptions::noise_flag`] a field `noise` (`SIZE 1`, `TYPE U`,
 //!   `COUNT 1`) is appended holding 1 where [`PointBatch::flags`] has [`FLAG_NOISE`], else 0. When
 //!   the schema already has a field named `noise` (a re-run), that field is overwritten instead.
+//! * **Normals.** With [`SinkOptions::normals`] the fields `normal_x normal_y normal_z curvature`
+//!   (`F 4`, PCL's `PointNormal` names) and `structure` (`U 1`) are appended before `noise`; a
+//!   field already holding one of them (`normal_x` or `nx`, …) is overwritten instead (see
+//!   [the I/O overview](super#normals)).
 //! * **Padding.** PCL's padding fields `_` are ordinary fields in `ascii` and `binary` data; in
 //!   `binary_compressed` data PCL leaves them out of the block, so they read as zero bytes and are
 //!   not written.
@@ -80,8 +84,8 @@ use self::header::{DEFAULT_VIEWPOINT, Header};
 use super::lines::{LineEnding, show, tokens};
 use super::tally::{Tally, check_batch};
 use super::{
-    AtomicFile, Extras, Format, Input, IoError, Meta, Sink, SinkOptions, Source, SourceInfo,
-    Trailer, foreign_field_type,
+    AtomicFile, Extras, Format, Input, IoError, Meta, NormalField, NormalNames, Sink, SinkOptions,
+    Source, SourceInfo, Trailer, foreign_field_type,
 };
 use crate::points::{Endian, FLAG_NOISE, Field, PointBatch, ScalarType, Schema};
 
@@ -630,6 +634,8 @@ pub struct PcdSink {
     promoted: [bool; 3],
     /// Output field receiving the noise flag.
     noise: Option<usize>,
+    /// Output fields receiving the written normals ([`SinkOptions::normals`]).
+    normals: Vec<(usize, NormalField)>,
     kind: PcdData,
     tally: Tally,
     rows: Vec<u8>,
@@ -693,15 +699,36 @@ impl PcdSink {
             ),
         };
         let mut fields = header.fields.clone();
-        let (append, noise) = match (options.noise_flag, like.schema.field_index(NOISE_FIELD)) {
-            (false, _) => (None, None),
-            (true, Some(i)) => (None, Some(i)),
-            (true, None) => {
-                let f = PcdField::new(NOISE_FIELD, ScalarType::U8, 1);
+        // Fields appended after the incoming ones: the normals, then the noise flag. A value the
+        // schema already holds is written into its field (output field i is incoming field i).
+        let mut append = Vec::new();
+        let mut slot = |name: &str, ty: ScalarType, existing: Option<usize>| match existing {
+            Some(i) => i,
+            None => {
+                let f = PcdField::new(name, ty, 1);
                 fields.push(f.clone());
-                (Some(f), Some(like.schema.fields.len()))
+                append.push(f);
+                like.schema.fields.len() + append.len() - 1
             }
         };
+        let normals: Vec<(usize, NormalField)> = if options.normals {
+            NormalField::ALL
+                .iter()
+                .map(|&f| {
+                    let i = slot(f.name(NormalNames::Pcd), f.ty(), f.find(&like.schema));
+                    (i, f)
+                })
+                .collect()
+        } else {
+            Vec::new()
+        };
+        let noise = options.noise_flag.then(|| {
+            slot(
+                NOISE_FIELD,
+                ScalarType::U8,
+                like.schema.field_index(NOISE_FIELD),
+            )
+        });
         // The output layout: the incoming fields, packed little-endian, then the noise field.
         let mut out_fields = Vec::with_capacity(like.schema.fields.len() + 1);
         let mut offset = 0;
@@ -790,7 +817,7 @@ impl PcdSink {
             (Vec::new(), None)
         };
 
-        out.write_all(&header.render(count, kind, append.as_ref()))
+        out.write_all(&header.render(count, kind, &append))
             .map_err(|e| out.err(e))?;
         Ok(PcdSink {
             out,
@@ -799,6 +826,7 @@ impl PcdSink {
             conv,
             promoted,
             noise,
+            normals,
             kind,
             tally: Tally::new(count),
             rows: Vec::new(),
@@ -843,6 +871,12 @@ impl PcdSink {
             if let Some(k) = self.noise {
                 let flag = f64::from(u8::from(batch.flag(i) & FLAG_NOISE != 0));
                 self.schema.set_f64(row, k, flag);
+            }
+            if !self.normals.is_empty() {
+                let n = batch.normal(i);
+                for &(k, f) in &self.normals {
+                    self.schema.set_f64(row, k, f.value(&n));
+                }
             }
         }
     }

@@ -26,6 +26,10 @@
 //!   rest of the header is kept, for PLY and foreign sources alike) and writes 1 for points whose
 //!   [`PointBatch::flags`] have [`FLAG_NOISE`], else 0, in every encoding. A vertex element that
 //!   already has a `noise` property (a re-run) keeps its header; that property is overwritten.
+//! * **Normals.** With [`SinkOptions::normals`] the vertex element gets `float nx`, `float ny`,
+//!   `float nz`, `float curvature` and `uchar structure` (before an appended `noise`), holding
+//!   [`PointBatch::normals`]; a property already holding one of them (`nx` or `normal_x`, …) is
+//!   overwritten in its own type instead (see [the I/O overview](super#normals)).
 //!
 //! ```text
 //!  ply / format / comment / obj_info / element … / end_header      PlyMeta (raw lines)

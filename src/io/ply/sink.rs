@@ -8,8 +8,8 @@ use super::READ_BUF;
 use super::body::{self, PosCodec, faces_digest, format_ascii};
 use super::header::{self, PlyElement, PlyEncoding, PlyProperty, PlyType};
 use crate::io::{
-    AtomicFile, Extras, IoError, Meta, NOISE_FIELD, Sink, SinkOptions, SourceInfo, Trailer,
-    foreign_field_type,
+    AtomicFile, Extras, IoError, Meta, NOISE_FIELD, NormalField, NormalNames, Sink, SinkOptions,
+    SourceInfo, Trailer, foreign_field_type,
 };
 use crate::points::{FLAG_NOISE, Faces, PointBatch, ScalarType, Schema, write_scalar};
 
@@ -26,6 +26,8 @@ pub struct PlySink {
     map: Option<Vec<Option<usize>>>,
     /// Target field receiving the noise flag.
     noise: Option<usize>,
+    /// Target fields receiving the written normals ([`SinkOptions::normals`]).
+    normals: Vec<(usize, NormalField)>,
     count: u64,
     written: u64,
     /// Elements after `vertex`, as declared in the output header.
@@ -181,6 +183,19 @@ impl PlySink {
                         }
                         _ => {}
                     }
+                    if options.normals {
+                        for f in NormalField::ALL {
+                            let has = |n: &&str| {
+                                h.elements[m.vertex]
+                                    .properties
+                                    .iter()
+                                    .any(|p| p.name == *n && matches!(p.ty, PlyType::Scalar(_)))
+                            };
+                            if !f.aliases().iter().any(has) {
+                                h.push_property(m.vertex, f.name(NormalNames::Ply), f.ty());
+                            }
+                        }
+                    }
                     if options.noise_flag
                         && !h.elements[m.vertex]
                             .properties
@@ -222,6 +237,16 @@ impl PlySink {
                             ScalarType::F64
                         };
                         fields.push((ply_name(&f.name, &taken), ty));
+                    }
+                    if options.normals {
+                        for f in NormalField::ALL {
+                            if !fields
+                                .iter()
+                                .any(|(n, _)| f.aliases().contains(&n.as_str()))
+                            {
+                                fields.push((f.name(NormalNames::Ply).to_string(), f.ty()));
+                            }
+                        }
                     }
                     if options.noise_flag && !fields.iter().any(|f| f.0 == NOISE_FIELD) {
                         fields.push((NOISE_FIELD.to_string(), ScalarType::U8));
@@ -284,6 +309,14 @@ impl PlySink {
             .noise_flag
             .then(|| target.field_index(NOISE_FIELD))
             .flatten();
+        let normals = if options.normals {
+            NormalField::ALL
+                .iter()
+                .filter_map(|&f| f.find(&target).map(|k| (k, f)))
+                .collect()
+        } else {
+            Vec::new()
+        };
         let face = post
             .iter()
             .position(|e| e.name == "face")
@@ -300,6 +333,7 @@ impl PlySink {
             source,
             map: (!same).then_some(map),
             noise,
+            normals,
             count,
             written: 0,
             post,
@@ -449,6 +483,14 @@ impl Sink for PlySink {
             for (i, rec) in self.buf.chunks_exact_mut(trl).enumerate() {
                 let flag = u8::from(batch.flag(i) & FLAG_NOISE != 0);
                 self.target.set_f64(rec, k, f64::from(flag));
+            }
+        }
+        if !self.normals.is_empty() {
+            for (i, rec) in self.buf.chunks_exact_mut(trl).enumerate() {
+                let n = batch.normal(i);
+                for &(k, f) in &self.normals {
+                    self.target.set_f64(rec, k, f.value(&n));
+                }
             }
         }
         if self.encoding.is_binary() {

@@ -132,7 +132,11 @@ pub fn plan(
         ..RunOptions::default()
     };
     if let Some(n) = info.len {
-        scratch::check_disk(&opts, n)?;
+        scratch::check_disk(
+            &opts,
+            n,
+            scratch::disk_per_point(req.spec.params.write_normals),
+        )?;
     }
     let per_point = bytes_per_point(&req.spec.params, info.schema.record_len);
     let limits = plan_phase::Limits::new(&opts, per_point);

@@ -43,14 +43,15 @@ pub(crate) fn run(
     let mut phases = Stats::default();
     let mut timer = Timer::start();
     // The disk the run needs, from the header's count, before the first pass.
+    let disk = scratch::disk_per_point(job.spec.params.write_normals);
     if let Some(n) = info.len {
-        scratch::check_disk(opts, n)?;
+        scratch::check_disk(opts, n, disk)?;
     }
     let limits = plan::Limits::new(opts, per_point);
     let plan = plan::plan(job, opts, info, &limits)?;
     timer.lap("plan", &mut phases);
 
-    let work = scratch::work_dir(opts, plan.finite * TILED_DISK_PER_POINT)?;
+    let work = scratch::work_dir(opts, plan.finite * disk)?;
     let partition = partition::partition(job, opts, &plan, &limits, &work)?;
     let budget = partition.budget(&limits);
     timer.lap("partition", &mut phases);

@@ -34,7 +34,9 @@ pub fn threshold(
     let value = mean_plus_alpha_sigma(sum, sq, job.spec.outlier_alpha);
     let mut removed = 0u64;
     if job.spec.outliers == OutlierMode::Remove {
-        let mut merge = ResultMerge::open(work.path(), plan.tiles.len()).map_err(tiling_err)?;
+        let mut merge =
+            ResultMerge::open(work.path(), plan.tiles.len(), job.spec.params.write_normals)
+                .map_err(tiling_err)?;
         while let Some(r) = merge.next_result().map_err(tiling_err)? {
             removed += (r.knn_mean > value) as u64;
         }

@@ -6,12 +6,18 @@ use std::path::PathBuf;
 use bytesize::ByteSize;
 
 use crate::pipeline::{PipelineError, RunOptions};
-use crate::tiling::spill::{RESULT_RECORD, SPILL_RECORD};
+use crate::tiling::spill::{SPILL_RECORD, result_record};
 use crate::tiling::workdir::WorkDir;
 
 /// Disk bytes per point a tiled run needs in its scratch directory: one spill record per point
 /// plus halo copies (counted as half as many again) and one result record.
-pub const TILED_DISK_PER_POINT: u64 = (SPILL_RECORD as u64 * 3).div_ceil(2) + RESULT_RECORD as u64;
+pub const TILED_DISK_PER_POINT: u64 = disk_per_point(false);
+
+/// [`TILED_DISK_PER_POINT`] of a run that writes normals (`normals`: longer result records) or
+/// not.
+pub const fn disk_per_point(normals: bool) -> u64 {
+    (SPILL_RECORD as u64 * 3).div_ceil(2) + result_record(normals) as u64
+}
 
 /// A size for messages, with a binary unit that shows its value ("512 B", "1.5 MiB").
 fn size(bytes: u64) -> String {
@@ -28,11 +34,11 @@ fn base(opts: &RunOptions) -> PathBuf {
 }
 
 /// Refuses a tiled run of `points` points before any work when the scratch file system has
-/// clearly too little room ([`TILED_DISK_PER_POINT`] per point).
+/// clearly too little room (`per_point` bytes a point: [`disk_per_point`]).
 ///
 /// # Errors
 /// [`PipelineError::TempDir`].
-pub fn check_disk(opts: &RunOptions, points: u64) -> Result<(), PipelineError> {
+pub fn check_disk(opts: &RunOptions, points: u64, per_point: u64) -> Result<(), PipelineError> {
     let mut base = base(opts);
     // A job directory may not exist yet: measure the nearest existing ancestor.
     while !base.exists() {
@@ -41,7 +47,7 @@ pub fn check_disk(opts: &RunOptions, points: u64) -> Result<(), PipelineError> {
             _ => return Ok(()),
         }
     }
-    let need = points.saturating_mul(TILED_DISK_PER_POINT);
+    let need = points.saturating_mul(per_point);
     let free = fs4::available_space(&base).map_err(|e| PipelineError::TempDir {
         path: base.clone(),
         detail: e.to_string(),
@@ -51,7 +57,7 @@ pub fn check_disk(opts: &RunOptions, points: u64) -> Result<(), PipelineError> {
             path: base,
             detail: format!(
                 "{} free, a tiled run of {points} points needs about {} \
-                 ({TILED_DISK_PER_POINT} bytes per point); free space or give --temp-dir",
+                 ({per_point} bytes per point); free space or give --temp-dir",
                 size(free),
                 size(need)
             ),
@@ -102,9 +108,10 @@ mod tests {
             ..RunOptions::default()
         };
         assert_eq!(TILED_DISK_PER_POINT, 88);
-        check_disk(&opts, 1000).unwrap();
+        assert_eq!(disk_per_point(true), 112);
+        check_disk(&opts, 1000, TILED_DISK_PER_POINT).unwrap();
         // 10^15 points need 88 PB: clearly more than any test machine has.
-        let e = check_disk(&opts, 1_000_000_000_000_000)
+        let e = check_disk(&opts, 1_000_000_000_000_000, TILED_DISK_PER_POINT)
             .unwrap_err()
             .to_string();
         assert!(

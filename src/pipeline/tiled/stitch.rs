@@ -39,7 +39,8 @@ pub fn stitch(
     threshold: &Threshold,
 ) -> Result<Stitched, PipelineError> {
     let tiling_err = |e| PipelineError::tiling(&job.input, e);
-    let asm = Assembler::new(info, job.spec.outliers, threshold.value);
+    let normals = job.spec.params.write_normals;
+    let asm = Assembler::new(info, job.spec.outliers, threshold.value).writing_normals(normals);
     let (dropped, removed) = if asm.keep_non_finite {
         (0, 0)
     } else {
@@ -54,7 +55,8 @@ pub fn stitch(
         count,
         &sink_options(job, opts),
     )?;
-    let mut merge = ResultMerge::open(work.path(), plan.tiles.len()).map_err(tiling_err)?;
+    let mut merge =
+        ResultMerge::open(work.path(), plan.tiles.len(), normals).map_err(tiling_err)?;
     let mut next: Option<TileResult> = merge.next_result().map_err(tiling_err)?;
     let mut out = PointBatch::with_capacity(info.schema.record_len, BATCH);
     let mut found = 0u64;
@@ -63,14 +65,14 @@ pub fn stitch(
         out.clear(written);
         for i in 0..b.len() {
             let gi = b.start + i as u64;
-            let result = match next {
+            let (result, normal) = match next {
                 Some(r) if r.index == gi => {
                     next = merge.next_result().map_err(tiling_err)?;
-                    Some((r.p, r.knn_mean))
+                    (Some((r.p, r.knn_mean)), r.normal)
                 }
-                _ => None,
+                _ => (None, None),
             };
-            found += asm.push(b, i, result, &mut out) as u64;
+            found += asm.push(b, i, result, normal, &mut out) as u64;
         }
         written += out.len() as u64;
         sink.write_batch(&out)?;
