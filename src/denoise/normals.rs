@@ -4,6 +4,7 @@ use glam::DVec3;
 use rayon::prelude::*;
 
 use super::NormalWeighting;
+use super::common::median;
 use crate::geometry::pca_normal;
 use crate::neighbours::Neighbourhoods;
 use crate::points::Faces;
@@ -181,16 +182,6 @@ pub fn filter_point_normals(
 #[inline]
 fn gauss(x: f64) -> f64 {
     if x == 0.0 { 1.0 } else { x.exp() }
-}
-
-/// The median of `xs` (the upper one for even counts: the `len / 2`-th smallest by
-/// `f64::total_cmp`); 0 when empty. Reorders `xs`.
-fn median(xs: &mut [f64]) -> f64 {
-    if xs.is_empty() {
-        return 0.0;
-    }
-    let m = xs.len() / 2;
-    *xs.select_nth_unstable_by(m, f64::total_cmp).1
 }
 
 /// Points per block of the parallel passes over lists.
