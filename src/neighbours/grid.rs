@@ -381,8 +381,7 @@ impl Level {
         c: [i64; 3],
         (lo, hi): (i64, i64),
         cap: usize,
-        tie: &impl Fn(u32) -> u64,
-        packed: bool,
+        pass: &Pass,
         lookups: &mut u64,
     ) -> bool {
         let sorted = &self.sorted;
@@ -391,16 +390,16 @@ impl Level {
                 return false;
             }
             blk.ids.extend_from_slice(&sorted[a..b]);
-            if packed {
+            if pass.packed {
                 let at = blk.keys.len() as u64;
                 blk.keys.extend(
                     sorted[a..b]
                         .iter()
                         .zip(at..)
-                        .map(|(&i, j)| tie(i) << 32 | j),
+                        .map(|(&i, j)| pass.tie(i) << 32 | j),
                 );
             } else {
-                blk.keys.extend(sorted[a..b].iter().map(|&i| tie(i)));
+                blk.keys.extend(sorted[a..b].iter().map(|&i| pass.tie(i)));
             }
             blk.xs.extend_from_slice(&self.xs[a..b]);
             blk.ys.extend_from_slice(&self.ys[a..b]);
@@ -639,7 +638,6 @@ fn answer_cell(
     if !level.sorted[a..b].iter().any(|&i| is_query(i)) {
         return (CellAnswers::default(), 0);
     }
-    let tie = |i: u32| pass.tie(i);
     let c = level.coord(level.point(a));
     let me = level.ancestor();
     let cap = |q: [f64; 3]| {
@@ -650,15 +648,7 @@ fn answer_cell(
     };
     let mut out = CellAnswers::default();
     blk.clear();
-    level.push_cells(
-        blk,
-        c,
-        (0, 1),
-        usize::MAX,
-        &tie,
-        pass.packed,
-        &mut out.work.cells,
-    );
+    level.push_cells(blk, c, (0, 1), usize::MAX, pass, &mut out.work.cells);
     let dense_load = DENSE_LOAD_PER_K * k;
     if defer && blk.ids.len() > dense_load {
         // A stack of coincident points that makes up much of the load cannot be split: answered
@@ -718,7 +708,7 @@ fn answer_cell(
     // retry order, so reorder the lists to follow `points`.
     blk.prev_sel.clear();
     let cap2 = RING2_LOAD_PER_K * k;
-    if !level.push_cells(blk, c, (2, 2), cap2, &tie, pass.packed, &mut out.work.cells) {
+    if !level.push_cells(blk, c, (2, 2), cap2, pass, &mut out.work.cells) {
         return (out, 0);
     }
     let mut extra = Vec::new();
