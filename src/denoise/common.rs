@@ -125,14 +125,15 @@ pub fn mean_edge_length(pos: &[DVec3], adjacency: &MeshAdjacency) -> f64 {
 /// The median of `xs`: its `len / 2`-th smallest value by [`f64::total_cmp`] (the upper median
 /// for even counts); 0 when empty. Reorders `xs`.
 ///
-/// The same value as `*xs.select_nth_unstable_by(len / 2, f64::total_cmp).1`. For 16 values
-/// (the default list) it sorts their `total_cmp` keys with a fixed network of compare-exchanges:
+/// The same value as `*xs.select_nth_unstable_by(len / 2, f64::total_cmp).1`. For 9 to 16 values
+/// (the default list, capped lists) it sorts their `total_cmp` keys with a fixed network of
+/// compare-exchanges:
 /// hand-rolled because std's selection is an insertion sort there whose branches mispredict on
 /// every list (3 % of the default operator's time in the normal filter's range widths, perf on
 /// 1 M points; `benches/kernels.rs`, group `median`).
 pub fn median(xs: &mut [f64]) -> f64 {
-    if let Ok(a) = <&mut [f64; 16]>::try_from(&mut *xs) {
-        return median16(a);
+    if (9..=16).contains(&xs.len()) {
+        return median16(xs);
     }
     if xs.is_empty() {
         return 0.0;
@@ -180,16 +181,20 @@ const fn odd_even_merge_network<const N: usize, const M: usize>() -> [(u8, u8); 
 
 const NETWORK16: [(u8, u8); 63] = odd_even_merge_network::<16, 63>();
 
-/// [`median`] of exactly 16 values: branch-free.
-fn median16(xs: &[f64; 16]) -> f64 {
-    let mut v = xs.map(total_key);
+/// [`median`] of 1 to 16 values: branch-free. Missing values are padded with the largest key,
+/// which leaves every order statistic below `len` as it was.
+fn median16(xs: &[f64]) -> f64 {
+    let mut v = [i64::MAX; 16];
+    for (k, &x) in v.iter_mut().zip(xs) {
+        *k = total_key(x);
+    }
     for &(a, b) in &NETWORK16 {
         let (x, y) = (v[a as usize], v[b as usize]);
         v[a as usize] = x.min(y);
         v[b as usize] = x.max(y);
     }
     // The key transform is an involution.
-    f64::from_bits(total_key(f64::from_bits(v[8] as u64)) as u64)
+    f64::from_bits(total_key(f64::from_bits(v[xs.len() / 2] as u64)) as u64)
 }
 
 #[cfg(test)]
@@ -216,6 +221,8 @@ mod tests {
             -f64::NAN,
             f64::MIN_POSITIVE,
             5e-324,
+            // The largest key, which pads short lists.
+            f64::from_bits(u64::MAX >> 1),
         ];
         for round in 0..20_000 {
             let len = if round % 2 == 0 {
