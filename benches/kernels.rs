@@ -2,7 +2,8 @@
 //! k-NN for k = 8/16/32, k-NN on a uniform against a cluttered cloud (`knn_clutter`), PCA normals,
 //! the quadric solve, the stages of the guarded default (`guarded_k16`: fits, classes and noise
 //! scales, the global noise pre-pass, the normal filter, one guarded update), the eigensolver
-//! against nalgebra, and the whole point-mode operator.
+//! against nalgebra, the median of a 16-value list (`denoise::common::median` against std's
+//! selection), and the whole point-mode operator.
 //!
 //! `QEMD_BENCH_POINTS` sets the cloud size (default 200 000).
 
@@ -294,12 +295,50 @@ fn eigen(c: &mut Criterion) {
     g.finish();
 }
 
+/// The median of 16 values per list, as the normal filter takes it per point: the sorting
+/// network of `denoise::common::median` against std's `select_nth_unstable_by`.
+fn median(c: &mut Criterion) {
+    let mut x = 0x9e37_79b9_7f4a_7c15u64;
+    let lists: Vec<[f64; 16]> = (0..100_000)
+        .map(|_| {
+            std::array::from_fn(|_| {
+                x ^= x << 13;
+                x ^= x >> 7;
+                x ^= x << 17;
+                (x >> 11) as f64 / (1u64 << 53) as f64
+            })
+        })
+        .collect();
+    let mut g = c.benchmark_group("median");
+    g.throughput(Throughput::Elements(lists.len() as u64));
+    g.bench_function("network_16", |b| {
+        b.iter(|| {
+            let mut s = 0.0;
+            for l in &lists {
+                s += qem_denoise::denoise::common::median(&mut l.clone());
+            }
+            black_box(s)
+        })
+    });
+    g.bench_function("select_nth_16", |b| {
+        b.iter(|| {
+            let mut s = 0.0;
+            for l in &lists {
+                s += *l.clone().select_nth_unstable_by(8, f64::total_cmp).1;
+            }
+            black_box(s)
+        })
+    });
+    g.finish();
+}
+
 criterion_group!(
     benches,
     knn,
     knn_clutter,
     normals_and_solve,
     guarded_stages,
-    eigen
+    eigen,
+    median
 );
 criterion_main!(benches);

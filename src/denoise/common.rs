@@ -1,6 +1,7 @@
 //! Pieces the mesh and point operators share: why a point stayed put ([`stay`]), merging a
-//! pass's results ([`merge_step`]), the faces around each vertex ([`FaceTopology`]) and the mean
-//! edge length of a mesh ([`mean_edge_length`]). `qem`, `filtered`, `bilateral`, `guarded` and
+//! pass's results ([`merge_step`]), the faces around each vertex ([`FaceTopology`]), the mean
+//! edge length of a mesh ([`mean_edge_length`]) and the median of a k-NN list's values
+//! ([`median`]). `qem`, `filtered`, `bilateral`, `guarded` and
 //! `cloud` use them; nothing here uses those files.
 
 use glam::DVec3;
@@ -122,4 +123,132 @@ pub fn mean_edge_length(pos: &[DVec3], adjacency: &MeshAdjacency) -> f64 {
         .map(|(a, b)| (pos[a as usize] - pos[b as usize]).length())
         .collect::<ExactSum>()
         .mean()
+}
+
+/// The median of `xs`: its `len / 2`-th smallest value by [`f64::total_cmp`] (the upper median
+/// for even counts); 0 when empty. Reorders `xs`.
+///
+/// The same value as `*xs.select_nth_unstable_by(len / 2, f64::total_cmp).1`. For 9 to 16 values
+/// (the default list, capped lists) it sorts their `total_cmp` keys with a fixed network of
+/// compare-exchanges:
+/// hand-rolled because std's selection is an insertion sort there whose branches mispredict on
+/// every list (3 % of the default operator's time in the normal filter's range widths, perf on
+/// 1 M points; `benches/kernels.rs`, group `median`).
+pub fn median(xs: &mut [f64]) -> f64 {
+    if (9..=16).contains(&xs.len()) {
+        return median16(xs);
+    }
+    if xs.is_empty() {
+        return 0.0;
+    }
+    let m = xs.len() / 2;
+    *xs.select_nth_unstable_by(m, f64::total_cmp).1
+}
+
+/// The `total_cmp` key of `x`: its bits with the magnitude flipped for negative values, so keys
+/// compare as signed integers exactly as `f64::total_cmp` compares the values (and map back).
+#[inline(always)]
+fn total_key(x: f64) -> i64 {
+    let b = x.to_bits() as i64;
+    b ^ (((b >> 63) as u64) >> 1) as i64
+}
+
+/// Batcher's odd–even merge sort on `N` inputs as a list of compare-exchanges `(lo, hi)`:
+/// `M` must be its length (63 for 16).
+const fn odd_even_merge_network<const N: usize, const M: usize>() -> [(u8, u8); M] {
+    let mut net = [(0u8, 0u8); M];
+    let mut at = 0;
+    let mut p = 1;
+    while p < N {
+        let mut k = p;
+        while k >= 1 {
+            let mut j = k % p;
+            while j + k < N {
+                let mut i = 0;
+                while i < k && i + j + k < N {
+                    if (i + j) / (2 * p) == (i + j + k) / (2 * p) {
+                        net[at] = ((i + j) as u8, (i + j + k) as u8);
+                        at += 1;
+                    }
+                    i += 1;
+                }
+                j += 2 * k;
+            }
+            k /= 2;
+        }
+        p *= 2;
+    }
+    assert!(at == M, "network length");
+    net
+}
+
+const NETWORK16: [(u8, u8); 63] = odd_even_merge_network::<16, 63>();
+
+/// [`median`] of 1 to 16 values: branch-free. Missing values are padded with the largest key,
+/// which leaves every order statistic below `len` as it was.
+fn median16(xs: &[f64]) -> f64 {
+    let mut v = [i64::MAX; 16];
+    for (k, &x) in v.iter_mut().zip(xs) {
+        *k = total_key(x);
+    }
+    for &(a, b) in &NETWORK16 {
+        let (x, y) = (v[a as usize], v[b as usize]);
+        v[a as usize] = x.min(y);
+        v[b as usize] = x.max(y);
+    }
+    // The key transform is an involution.
+    f64::from_bits(total_key(f64::from_bits(v[xs.len() / 2] as u64)) as u64)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_median_is_the_selected_value_for_every_length_and_value() {
+        let mut x = 0x2545_f491_4f6c_dd1du64;
+        let mut next = move || {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            x
+        };
+        let specials = [
+            0.0,
+            -0.0,
+            1.0,
+            -1.0,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+            f64::NAN,
+            -f64::NAN,
+            f64::MIN_POSITIVE,
+            5e-324,
+            // The largest key, which pads short lists.
+            f64::from_bits(u64::MAX >> 1),
+        ];
+        for round in 0..20_000 {
+            let len = if round % 2 == 0 {
+                16
+            } else {
+                (next() % 20) as usize
+            };
+            let mut xs: Vec<f64> = (0..len)
+                .map(|_| match next() % 4 {
+                    0 => specials[(next() % specials.len() as u64) as usize],
+                    // Few distinct values: ties.
+                    1 => (next() % 4) as f64 * 0.25,
+                    _ => f64::from_bits(next()),
+                })
+                .collect();
+            let mut want = xs.clone();
+            let expect = if want.is_empty() {
+                0.0
+            } else {
+                let m = want.len() / 2;
+                *want.select_nth_unstable_by(m, f64::total_cmp).1
+            };
+            assert_eq!(median(&mut xs).to_bits(), expect.to_bits(), "{want:?}");
+        }
+    }
 }

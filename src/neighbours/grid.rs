@@ -116,10 +116,15 @@ struct Block {
     ys: Vec<f64>,
     zs: Vec<f64>,
     ids: Vec<u32>,
-    ties: Vec<u64>,
+    /// Per candidate: `tie << 32 | position in the block` when the pass's tie keys fit in 32 bits
+    /// ([`Pass::packed`]), the tie key otherwise.
+    keys: Vec<u64>,
     d: Vec<f64>,
     sel: Vec<u32>,
     best: Vec<(u128, u32)>,
+    /// Packed ranks `distance bits << 64 | tie << 32 | position` of the candidates within the
+    /// bound (only the first `kept` are meaningful; never shrunk, so no per-query fill).
+    ranked: Vec<u128>,
     /// The last answered query of this thread (any cell, any level): its k-th distance bounds
     /// the next query's by the triangle inequality.
     prev: Option<([f64; 3], f64)>,
@@ -134,7 +139,7 @@ impl Block {
         self.ys.clear();
         self.zs.clear();
         self.ids.clear();
-        self.ties.clear();
+        self.keys.clear();
         self.prev_sel.clear();
     }
 }
@@ -156,7 +161,7 @@ pub(crate) struct CellAnswers {
 ///
 /// ```text
 ///   sorted:  [ ids of cell A (Z-order, id) | ids of cell B | … ]   runs: (key, start, end), by key
-///   ordered: [ their local coordinates, same order ]               columns: (x, y) → its runs
+///   xs, ys, zs: [ their local coordinates, same order ]            columns: (x, y) → its runs
 ///   cell of p = ⌊(p − corner) / cell⌋, relative to the subset's own lower corner
 ///   key = x · 2⁸⁴ + y · 2⁴² + z: the cells of one (x, y) column are consecutive runs, by z,
 ///   so a 3 × 3 × 3 block costs 9 hash look-ups, not 27
@@ -172,8 +177,11 @@ struct Level {
     slack: f64,
     /// Point indices, sorted by (cell key, Z-order inside the cell, index).
     sorted: Vec<u32>,
-    /// Their local coordinates, same order (contiguous reads when gathering a block).
-    ordered: Vec<[f64; 3]>,
+    /// Their local coordinates, same order, one column per axis: gathering a block copies
+    /// contiguous runs into the block's own columns.
+    xs: Vec<f64>,
+    ys: Vec<f64>,
+    zs: Vec<f64>,
     /// One entry per occupied cell, ascending by key: (key, start, end) in `sorted`.
     runs: Vec<(u128, u32, u32)>,
     /// Column key (x, y) → its cells' range in `runs`.
@@ -232,7 +240,9 @@ impl Level {
             corner,
             slack: ROUNDING * (span + cell),
             sorted: Vec::new(),
-            ordered: Vec::new(),
+            xs: Vec::new(),
+            ys: Vec::new(),
+            zs: Vec::new(),
             runs: Vec::new(),
             columns: FxHashMap::default(),
         };
@@ -264,14 +274,25 @@ impl Level {
         }
         level.sorted = keyed.iter().map(|&(_, _, _, i)| i).collect();
         drop(keyed);
-        // A cell-ordered copy of the coordinates: gathering a block then reads contiguous memory
-        // instead of jumping through the input order.
-        level.ordered = level
-            .sorted
-            .par_iter()
-            .map(|&i| local[i as usize])
-            .collect();
+        // Cell-ordered copies of the coordinates: gathering a block then copies contiguous
+        // memory instead of jumping through the input order.
+        let column = |a: usize| -> Vec<f64> {
+            level
+                .sorted
+                .par_iter()
+                .map(|&i| local[i as usize][a])
+                .collect()
+        };
+        level.xs = column(0);
+        level.ys = column(1);
+        level.zs = column(2);
         level
+    }
+
+    /// Local coordinates of the point at position `j` of `sorted`.
+    #[inline]
+    fn point(&self, j: usize) -> [f64; 3] {
+        [self.xs[j], self.ys[j], self.zs[j]]
     }
 
     fn ancestor(&self) -> Ancestor {
@@ -360,21 +381,29 @@ impl Level {
         c: [i64; 3],
         (lo, hi): (i64, i64),
         cap: usize,
-        tie: &impl Fn(u32) -> u64,
+        pass: &Pass,
         lookups: &mut u64,
     ) -> bool {
-        let (sorted, ordered) = (&self.sorted, &self.ordered);
+        let sorted = &self.sorted;
         self.for_cells(c, lo, hi, lookups, |a, b| {
             if blk.ids.len() + (b - a) > cap {
                 return false;
             }
             blk.ids.extend_from_slice(&sorted[a..b]);
-            blk.ties.extend(sorted[a..b].iter().map(|&i| tie(i)));
-            for p in &ordered[a..b] {
-                blk.xs.push(p[0]);
-                blk.ys.push(p[1]);
-                blk.zs.push(p[2]);
+            if pass.packed {
+                let at = blk.keys.len() as u64;
+                blk.keys.extend(
+                    sorted[a..b]
+                        .iter()
+                        .zip(at..)
+                        .map(|(&i, j)| pass.tie(i) << 32 | j),
+                );
+            } else {
+                blk.keys.extend(sorted[a..b].iter().map(|&i| pass.tie(i)));
             }
+            blk.xs.extend_from_slice(&self.xs[a..b]);
+            blk.ys.extend_from_slice(&self.ys[a..b]);
+            blk.zs.extend_from_slice(&self.zs[a..b]);
             true
         })
     }
@@ -422,6 +451,10 @@ struct Pass<'a> {
     ties: Option<&'a [u64]>,
     k: usize,
     cancel: Option<&'a AtomicBool>,
+    /// Every tie key fits in 32 bits: a candidate's rank (distance, tie) and its block position
+    /// pack into one `u128`, which sorts in half the memory of a `(u128, u32)` pair with one
+    /// comparison (the ranking is the same: tie keys are distinct).
+    packed: bool,
 }
 
 impl Pass<'_> {
@@ -451,11 +484,16 @@ pub(crate) fn all_knn(
     cell: f64,
     cancel: Option<&AtomicBool>,
 ) -> Result<(Vec<CellAnswers>, Work), Cancelled> {
+    let packed = match ties {
+        Some(t) => t.iter().all(|&x| x <= u32::MAX as u64),
+        None => local.len() <= u32::MAX as usize + 1,
+    };
     let pass = Pass {
         local,
         ties,
         k,
         cancel,
+        packed,
     };
     let mut queries: Option<Bits> = asked.map(|a| {
         let mut b = Bits::new(local.len());
@@ -516,7 +554,7 @@ pub(crate) fn all_knn(
             // The next level holds every point of the dense cells' blocks.
             let mut ranges: Vec<(u32, u32)> = Vec::new();
             for &r in &dense {
-                let c = level.coord(level.ordered[level.runs[r].1 as usize]);
+                let c = level.coord(level.point(level.runs[r].1 as usize));
                 let mut lookups = 0;
                 level.for_cells(c, 0, 1, &mut lookups, |a, b| {
                     ranges.push((a as u32, b as u32));
@@ -600,8 +638,7 @@ fn answer_cell(
     if !level.sorted[a..b].iter().any(|&i| is_query(i)) {
         return (CellAnswers::default(), 0);
     }
-    let tie = |i: u32| pass.tie(i);
-    let c = level.coord(level.ordered[a]);
+    let c = level.coord(level.point(a));
     let me = level.ancestor();
     let cap = |q: [f64; 3]| {
         ancestors
@@ -611,13 +648,12 @@ fn answer_cell(
     };
     let mut out = CellAnswers::default();
     blk.clear();
-    level.push_cells(blk, c, (0, 1), usize::MAX, &tie, &mut out.work.cells);
+    level.push_cells(blk, c, (0, 1), usize::MAX, pass, &mut out.work.cells);
     let dense_load = DENSE_LOAD_PER_K * k;
     if defer && blk.ids.len() > dense_load {
         // A stack of coincident points that makes up much of the load cannot be split: answered
         // here, deduplicated (one block scan for the whole stack).
-        let stack =
-            b - a > dense_load / 4 && level.ordered[a..b].iter().all(|p| *p == level.ordered[a]);
+        let stack = b - a > dense_load / 4 && (a..b).all(|j| level.point(j) == level.point(a));
         if !stack {
             return (out, blk.ids.len());
         }
@@ -627,7 +663,8 @@ fn answer_cell(
     let mut retry = Vec::new();
     // The last query of this cell and where its answer is (`None` when it failed).
     let mut last: Option<([f64; 3], Option<usize>)> = None;
-    for (&qi, &q) in level.sorted[a..b].iter().zip(&level.ordered[a..b]) {
+    for (j, &qi) in (a..b).zip(&level.sorted[a..b]) {
+        let q = level.point(j);
         if !is_query(qi) {
             continue;
         }
@@ -653,7 +690,7 @@ fn answer_cell(
         }
         let reach = me.reach(q, 1).min(cap(q));
         let at = out.lists.len();
-        let r = query(blk, q, k, reach, &mut out.lists, &mut out.work);
+        let r = query(blk, q, k, reach, pass.packed, &mut out.lists, &mut out.work);
         if r.is_nan() {
             retry.push(out.points.len());
             last = Some((q, None));
@@ -671,7 +708,7 @@ fn answer_cell(
     // retry order, so reorder the lists to follow `points`.
     blk.prev_sel.clear();
     let cap2 = RING2_LOAD_PER_K * k;
-    if !level.push_cells(blk, c, (2, 2), cap2, &tie, &mut out.work.cells) {
+    if !level.push_cells(blk, c, (2, 2), cap2, pass, &mut out.work.cells) {
         return (out, 0);
     }
     let mut extra = Vec::new();
@@ -692,7 +729,7 @@ fn answer_cell(
             _ => {
                 let reach = me.reach(q, 2).min(cap(q));
                 let at = extra.len();
-                let r = query(blk, q, k, reach, &mut extra, &mut out.work);
+                let r = query(blk, q, k, reach, pass.packed, &mut extra, &mut out.work);
                 last = Some((q, r, (!r.is_nan()).then_some(at)));
                 r
             }
@@ -745,6 +782,7 @@ fn query(
     q: [f64; 3],
     k: usize,
     reach: f64,
+    packed: bool,
     lists: &mut Vec<u32>,
     work: &mut Work,
 ) -> f64 {
@@ -754,9 +792,15 @@ fn query(
     if m < k || reach.is_nan() || reach <= 0.0 {
         return f64::NAN;
     }
+    // Zipped columns, no indexing: the loop vectorises.
     blk.d.clear();
-    blk.d
-        .extend((0..m).map(|j| dist2(q, [blk.xs[j], blk.ys[j], blk.zs[j]])));
+    blk.d.extend(
+        blk.xs
+            .iter()
+            .zip(&blk.ys)
+            .zip(&blk.zs)
+            .map(|((&x, &y), &z)| dist2(q, [x, y, z])),
+    );
     let t = if blk.prev_sel.len() == k {
         // k block members lie within the farthest of them: an exact bound, same formula.
         blk.prev_sel
@@ -773,6 +817,68 @@ fn query(
             None => f64::INFINITY,
         }
     };
+    // A tighter guess from the previous answer's k-th distance, kept when it provably holds k
+    // candidates (a vectorised count): fewer candidates to rank.
+    let t = match blk.prev {
+        Some((_, pr)) if pr * GUESS < t => {
+            let g = pr * GUESS;
+            let n = blk.d.iter().filter(|&&d| d <= g).count();
+            if n >= k { g } else { t }
+        }
+        _ => t,
+    };
+    let dk = if packed {
+        select_packed(blk, k, t)
+    } else {
+        select_wide(blk, k, t)
+    };
+    // Strict, with a relative margin for the rounding of `dist2`.
+    if dk < reach * reach * (1.0 - 1e-9) {
+        lists.extend(blk.prev_sel.iter().map(|&j| blk.ids[j as usize]));
+        dk
+    } else {
+        f64::NAN
+    }
+}
+
+/// The k best candidates by (distance, tie) among those within `t` (all of them when fewer than
+/// k are), into `blk.prev_sel` in ascending order; returns the k-th squared distance. Packed
+/// ranks ([`Pass::packed`]): one branchless pass over the block builds the ranks of the
+/// candidates within the bound.
+const GUESS: f64 = 1.2;
+
+fn select_packed(blk: &mut Block, k: usize, t: f64) -> f64 {
+    let m = blk.ids.len();
+    if blk.ranked.len() < m {
+        blk.ranked.resize(m, 0);
+    }
+    let pack = |d: f64, key: u64| (d.to_bits() as u128) << 64 | key as u128;
+    let ranked = &mut blk.ranked[..m];
+    let mut kept = 0;
+    for (&d, &key) in blk.d.iter().zip(&blk.keys) {
+        ranked[kept] = pack(d, key);
+        kept += (d <= t) as usize;
+    }
+    if kept < k {
+        for ((r, &d), &key) in ranked.iter_mut().zip(&blk.d).zip(&blk.keys) {
+            *r = pack(d, key);
+        }
+        kept = m;
+    }
+    let mut best = &mut ranked[..kept];
+    if kept > 2 * k {
+        best.select_nth_unstable(k - 1);
+        best = &mut best[..k];
+    }
+    best.sort_unstable();
+    blk.prev_sel.clear();
+    blk.prev_sel.extend(best[..k].iter().map(|&r| r as u32));
+    rank_distance(best[k - 1])
+}
+
+/// [`select_packed`] for tie keys beyond 32 bits: (rank, position) pairs.
+fn select_wide(blk: &mut Block, k: usize, t: f64) -> f64 {
+    let m = blk.ids.len();
     // Branchless compaction of the candidates within the bound.
     let sel = &mut blk.sel;
     sel.clear();
@@ -792,21 +898,14 @@ fn query(
     best.clear();
     best.extend(sel[..kept].iter().map(|&j| {
         let ju = j as usize;
-        (rank(blk.d[ju], blk.ties[ju]), j)
+        (rank(blk.d[ju], blk.keys[ju]), j)
     }));
     if kept > 2 * k {
         best.select_nth_unstable(k - 1);
         best.truncate(k);
     }
     best.sort_unstable();
-    let dk = rank_distance(best[k - 1].0);
     blk.prev_sel.clear();
     blk.prev_sel.extend(best[..k].iter().map(|e| e.1));
-    // Strict, with a relative margin for the rounding of `dist2`.
-    if dk < reach * reach * (1.0 - 1e-9) {
-        lists.extend(best[..k].iter().map(|e| blk.ids[e.1 as usize]));
-        dk
-    } else {
-        f64::NAN
-    }
+    rank_distance(best[k - 1].0)
 }

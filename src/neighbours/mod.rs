@@ -642,11 +642,15 @@ mod tests {
             let pts = cloud(seed, n, true);
             let mut ties: Vec<u64> = (0..n as u64).map(|i| i * 7919 % 100_003).collect();
             ties.reverse();
-            let index = KnnIndex::build_with_ties(&pts, DVec3::ZERO, ties.clone()).unwrap();
-            let (nb, _) = index.knn_all(k.min(n)).unwrap();
-            for i in 0..n {
-                let want = brute::knn_with_ties(&pts, &ties, pts[i], k.min(n));
-                prop_assert_eq!(nb.get(i), &want[..], "point {}", i);
+            // Keys within 32 bits rank through packed ranks, wider ones through pairs.
+            let wide: Vec<u64> = ties.iter().map(|&t| t * (1 << 20) + (1 << 33)).collect();
+            for ties in [ties, wide] {
+                let index = KnnIndex::build_with_ties(&pts, DVec3::ZERO, ties.clone()).unwrap();
+                let (nb, _) = index.knn_all(k.min(n)).unwrap();
+                for i in 0..n {
+                    let want = brute::knn_with_ties(&pts, &ties, pts[i], k.min(n));
+                    prop_assert_eq!(nb.get(i), &want[..], "point {}", i);
+                }
             }
         }
     }
