@@ -33,6 +33,7 @@
 use glam::DVec3;
 use rayon::prelude::*;
 
+use super::common::median;
 use crate::geometry::{PcaFit, pca_fit};
 use crate::neighbours::Neighbourhoods;
 
@@ -189,15 +190,6 @@ pub fn local_fits(pos: &[DVec3], lists: &Neighbourhoods) -> Vec<LocalFit> {
             fit_of(pca_fit(lists.get(i).iter().map(|&u| pos[u as usize] - v)))
         })
         .collect()
-}
-
-/// The median of `xs` (the upper one for even counts); 0 when empty. Reorders `xs`.
-fn median(xs: &mut [f64]) -> f64 {
-    if xs.is_empty() {
-        return 0.0;
-    }
-    let m = xs.len() / 2;
-    *xs.select_nth_unstable_by(m, f64::total_cmp).1
 }
 
 /// Final classes: [`Structure::Sparse`] for points whose own k-NN radius (`radii` squared) is at
