@@ -423,7 +423,10 @@ fn denoise(a: DenoiseArgs) -> Result<()> {
                 String::new()
             };
             let held = if s.held > 0 {
-                format!(", {} held by --classes", s.held)
+                format!(
+                    ", {} held by class (--classes; LAS noise and withheld)",
+                    s.held
+                )
             } else {
                 String::new()
             };

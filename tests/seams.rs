@@ -302,6 +302,73 @@ fn issue9_classes_hold_the_others_any_tile_size() {
     assert!(moved > 1000, "{moved} points of classes 2 and 7 moved");
 }
 
+/// LAS input without `--classes`: the noise classes 7 and 18 and the withheld points stay, in
+/// memory and at every tile size; `--classes 0-255` moves the noise classes (withheld points
+/// still stay).
+#[test]
+fn issue9_las_noise_and_withheld_points_stay_any_tile_size() {
+    use std::fmt::Write as _;
+    let d = tempfile::tempdir().unwrap();
+    let pts = surface(3000, 11);
+    // (class, flags): every 53rd point low noise, every 61st high noise, every 89th withheld
+    // ground (bit 2 of the LAS 1.4 classification flags), the rest ground.
+    let tag = |i: usize| match i {
+        _ if i.is_multiple_of(53) => (7u8, 0u8),
+        _ if i.is_multiple_of(61) => (18, 0),
+        _ if i.is_multiple_of(89) => (2, 0x04),
+        _ => (2, 0),
+    };
+    let mut text = format!(
+        "ply\nformat ascii 1.0\nelement vertex {}\nproperty double x\nproperty double y\n\
+         property double z\nproperty uchar classification\nproperty uchar classification_flags\n\
+         end_header\n",
+        pts.len()
+    );
+    for (i, p) in pts.iter().enumerate() {
+        let (c, f) = tag(i);
+        writeln!(text, "{} {} {} {c} {f}", p.x, p.y, p.z).unwrap();
+    }
+    let ply = d.path().join("tagged.ply");
+    std::fs::write(&ply, text).unwrap();
+    let input = d.path().join("tagged.las");
+    Cloud::read(&ply, None)
+        .unwrap()
+        .write(&input, None)
+        .unwrap();
+    // The LAS file rounds coordinates to its scale: compare against what it holds.
+    let pts = Cloud::read(&input, None).unwrap().positions;
+    let stays = |i: usize, noise_moves: bool| {
+        let (c, f) = tag(i);
+        f != 0 || (!noise_moves && (c == 7 || c == 18))
+    };
+    for noise_moves in [false, true] {
+        let mut j = job(Params::default());
+        if noise_moves {
+            j.spec.classes = Some("0-255".parse().unwrap());
+        }
+        let reports = assert_seamless(&input, &j, SIZES);
+        let held = (0..pts.len()).filter(|&i| stays(i, noise_moves)).count();
+        assert_eq!(
+            reports[0].stats.held, held as u64,
+            "noise moves: {noise_moves}"
+        );
+        let out = Cloud::read(&d.path().join("whole.ply"), None).unwrap();
+        let mut moved = [0usize; 2];
+        for (i, p) in pts.iter().enumerate() {
+            if stays(i, noise_moves) {
+                assert_eq!(
+                    out.positions[i], *p,
+                    "point {i} moved (noise moves: {noise_moves})"
+                );
+            } else {
+                moved[(tag(i).0 != 2) as usize] += (out.positions[i] != *p) as usize;
+            }
+        }
+        assert!(moved[0] > 1000, "{moved:?} ground points moved");
+        assert_eq!(moved[1] > 0, noise_moves, "{moved:?} noise points moved");
+    }
+}
+
 #[test]
 fn bilateral_with_its_global_pre_pass() {
     let d = tempfile::tempdir().unwrap();

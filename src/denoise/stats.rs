@@ -46,7 +46,8 @@ pub struct Stats {
     /// Points with fewer than k points within the isolation radius, kept in place.
     #[serde(default)]
     pub isolated: u64,
-    /// Points of classes `--classes` does not name, kept in place.
+    /// Points kept in place for their class: classes `--classes` does not name, and on LAS input
+    /// the noise classes 7 and 18 (unless named) and withheld points.
     #[serde(default)]
     pub held: u64,
     /// Largest distance between a point's input and output positions.

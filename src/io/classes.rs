@@ -16,6 +16,9 @@ pub struct ClassField {
     index: usize,
     /// The field holds only a class (false: a LAS 1.0–1.3 byte whose top three bits are flags).
     whole: bool,
+    /// LAS records: the field and bit of the withheld flag (bit 7 of the classification byte in
+    /// formats 0–5, bit 2 of `classification_flags` in 6–10).
+    withheld: Option<(usize, u32)>,
 }
 
 impl ClassField {
@@ -25,13 +28,38 @@ impl ClassField {
         if let Some(index) = schema.field_index("classification") {
             // LAS 1.4 formats 6–10 have a whole class byte beside `classification_flags`; the
             // older formats keep flags in the top three bits.
-            let whole = schema.field_index("classification_flags").is_some() || !las;
-            return Some(ClassField { index, whole });
+            let flags = schema.field_index("classification_flags");
+            let whole = flags.is_some() || !las;
+            let withheld = match flags {
+                _ if !las => None,
+                Some(f) => Some((f, 0x04)),
+                None => Some((index, 0x80)),
+            };
+            return Some(ClassField {
+                index,
+                whole,
+                withheld,
+            });
         }
         schema
             .field_index("class")
             .or_else(|| schema.field_index("label"))
-            .map(|index| ClassField { index, whole: true })
+            .map(|index| ClassField {
+                index,
+                whole: true,
+                withheld: None,
+            })
+    }
+
+    /// True when `record` is a LAS point record whose withheld flag is set.
+    pub fn withheld(&self, schema: &Schema, record: &[u8]) -> bool {
+        self.withheld
+            .is_some_and(|(f, bit)| schema.get_f64(record, f) as u32 & bit != 0)
+    }
+
+    /// True when the records are LAS point records (the field is their classification).
+    pub fn is_las(&self) -> bool {
+        self.withheld.is_some()
     }
 
     /// The class code of `record` (a negative or fractional value reads as its integer part,
@@ -69,9 +97,13 @@ mod tests {
         let f = ClassField::of(&old, true).unwrap();
         // Class 6 with the withheld flag (bit 7).
         assert_eq!(f.code(&old, &[0, 0, 0, 0x80 | 6]), 6);
+        assert!(f.withheld(&old, &[0, 0, 0, 0x80 | 6]));
+        assert!(!f.withheld(&old, &[0, 0, 0, 0x40 | 6]));
         let new = schema(&["classification", "classification_flags"]);
         let f = ClassField::of(&new, true).unwrap();
         assert_eq!(f.code(&new, &[0, 0, 0, 0x86, 0]), 0x86);
+        assert!(f.withheld(&new, &[0, 0, 0, 7, 0x04]));
+        assert!(!f.withheld(&new, &[0, 0, 0, 0x86, 0x0b]));
         // Not LAS: the field is a plain number.
         assert_eq!(
             ClassField::of(&old, false)

@@ -65,7 +65,8 @@ pub struct DenoiseSpec {
     /// Outlier threshold in standard deviations above the mean.
     #[serde(default = "default_alpha")]
     pub outlier_alpha: f64,
-    /// Point clouds: only points of these classes move (`--classes`); `None`: every point.
+    /// Point clouds: only points of these classes move (`--classes`); `None`: every point but
+    /// LAS noise (classes 7 and 18). LAS withheld points never move.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub classes: Option<ClassList>,
 }
@@ -252,9 +253,11 @@ pub struct SpecOverlay {
     #[cfg_attr(feature = "cli", arg(long))]
     #[serde(skip_serializing_if = "Option::is_none")]
     pub outlier_alpha: Option<f64>,
-    /// Point clouds: move only the points of these classes, e.g. `2,6` (LAS classification, or
-    /// a `class` or `label` field in PLY, PCD and text); the others keep their position but
-    /// still serve as neighbours. Default: every point moves.
+    /// Point clouds: move only the points of these classes, e.g. `2,6` or `1-6` (LAS
+    /// classification, or a `class` or `label` field in PLY, PCD and text); the others keep their
+    /// position but still serve as neighbours. Default: every point moves, except on LAS input
+    /// the noise classes 7 and 18 (name them, or give `0-255`, to move them); LAS withheld
+    /// points always stay.
     #[cfg_attr(
         feature = "cli",
         arg(long, value_name = "CODES", value_parser = super::classes::parse)

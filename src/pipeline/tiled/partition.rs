@@ -89,10 +89,7 @@ fn spill(
     work: &WorkDir,
 ) -> Result<(u64, Option<Occupancy>), PipelineError> {
     let tiling_err = |e| PipelineError::tiling(&job.input, e);
-    let selection = match &job.spec.classes {
-        Some(_) => Selection::of(job, crate::io::open(&job.input, job.input_format)?.info())?,
-        None => None,
-    };
+    let selection = Selection::of(job, crate::io::open(&job.input, job.input_format)?.info())?;
     let mut spill = SpillWriter::create(work.path(), plan.tiles.len()).map_err(tiling_err)?;
     let mut near = Vec::new();
     let mut occupancy = plan
