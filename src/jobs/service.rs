@@ -227,14 +227,16 @@ impl Jobs {
             let rx = jobs.inner.shutdown.subscribe();
             handles.push(tokio::spawn(async move { me.worker(rx).await }));
         }
-        *jobs.inner.workers.lock().unwrap_or_else(|e| e.into_inner()) = handles;
         if !attach.is_empty() {
             info!(jobs = attach.len(), "re-attaching to jobs on SLURM");
         }
+        // Outside the worker slots (they hand the job to its monitor and return); joined at
+        // shutdown like the workers.
         for id in attach {
             let me = jobs.clone();
-            let _ = tokio::spawn(async move { me.run_job(id).await });
+            handles.push(tokio::spawn(async move { me.run_job(id).await }));
         }
+        *jobs.inner.workers.lock().unwrap_or_else(|e| e.into_inner()) = handles;
         Ok(jobs)
     }
 
