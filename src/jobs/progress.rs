@@ -171,7 +171,8 @@ mod tests {
             (v.phase.as_str(), v.tiles_done, v.tiles_total),
             ("tiles", 2, 8)
         );
-        assert_eq!(v.percent, 35.0 + 55.0 * 0.25);
+        // 35 + 55 × 2/8, to one decimal.
+        assert_eq!(v.percent, 48.8);
         p.committed("stitch", 0, 1, (8, 8));
         assert_eq!(p.snapshot().percent, 90.0);
     }
