@@ -10,6 +10,8 @@ use figment::Figment;
 use figment::providers::{Env, Format, Toml};
 use thiserror::Error;
 
+pub use crate::pipeline::scaleout::Executor;
+
 /// The defaults, compiled in so the binary needs no file at run time.
 pub const DEFAULTS: &str = include_str!("../config/default.toml");
 
@@ -32,6 +34,36 @@ pub const KEYS: &[&str] = &[
     "sync_time_limit",
     "log_format",
     "log_level",
+    "executor",
+    "slurm_min_points",
+    "slurm_worker",
+    "slurm_partition",
+    "slurm_account",
+    "slurm_cpus_per_task",
+    "slurm_max_tasks",
+    "slurm_sbatch_args",
+    "slurm_poll_interval",
+];
+
+/// Options of `slurm_sbatch_args` the service sets itself for each phase's array job.
+const SBATCH_OWN: &[&str] = &[
+    "--array",
+    "-a",
+    "--dependency",
+    "-d",
+    "--wrap",
+    "--parsable",
+    "--job-name",
+    "-J",
+    "--output",
+    "-o",
+    "--error",
+    "-e",
+    "--chdir",
+    "-D",
+    "--cpus-per-task",
+    "-c",
+    "--kill-on-invalid-dep",
 ];
 
 /// Errors of configuration loading.
@@ -86,6 +118,27 @@ pub struct Config {
     pub log_format: LogFormat,
     /// `serve`: log filter (tracing `EnvFilter` syntax).
     pub log_level: String,
+    /// `serve`: where jobs run: `local`, or `slurm` for point clouds of at least
+    /// `slurm_min_points` points (docs/SCALE-OUT.md, "The service on SLURM").
+    pub executor: Executor,
+    /// `serve` with `executor = "slurm"`: clouds with at least this many points go to SLURM.
+    pub slurm_min_points: u64,
+    /// `serve` with SLURM: the `qemd` binary as the cluster's nodes see it; empty for the
+    /// service's own executable.
+    pub slurm_worker: PathBuf,
+    /// `serve` with SLURM: `sbatch --partition`; empty for the cluster's default.
+    pub slurm_partition: String,
+    /// `serve` with SLURM: `sbatch --account`; empty for the user's default.
+    pub slurm_account: String,
+    /// `serve` with SLURM: `sbatch --cpus-per-task`, also each worker's `--threads`.
+    pub slurm_cpus_per_task: u32,
+    /// `serve` with SLURM: most array tasks of one phase (each takes its share of the tiles).
+    pub slurm_max_tasks: u64,
+    /// `serve` with SLURM: more `sbatch` options, separated by white space (no quoting).
+    pub slurm_sbatch_args: String,
+    /// `serve` with SLURM: how often a job's SLURM jobs and checkpoints are looked at.
+    #[serde(with = "duration")]
+    pub slurm_poll_interval: Duration,
 }
 
 /// How `qemd serve` writes its log lines.
@@ -161,7 +214,65 @@ impl Config {
             return bad("max_upload_size and max_sync_size", "must be positive");
         }
         self.tokens()?;
+        self.validate_slurm()
+    }
+
+    /// Checks the `slurm_*` keys (whatever the executor, so that a file switched to SLURM later
+    /// holds no surprise).
+    ///
+    /// # Errors
+    /// [`ConfigError::Invalid`] naming the key.
+    fn validate_slurm(&self) -> Result<(), ConfigError> {
+        let bad = |key: &str, detail: &str| Err(ConfigError::Invalid(format!("{key} {detail}")));
+        if self.slurm_min_points == 0 {
+            return bad("slurm_min_points", "must be at least 1");
+        }
+        if !self.slurm_worker.as_os_str().is_empty() && !self.slurm_worker.is_absolute() {
+            return bad(
+                "slurm_worker",
+                "must be an absolute path (as the cluster's nodes see it), or empty",
+            );
+        }
+        for (key, v) in [
+            ("slurm_partition", &self.slurm_partition),
+            ("slurm_account", &self.slurm_account),
+        ] {
+            if v.chars()
+                .any(|c| c.is_whitespace() || c.is_control() || c == ',')
+            {
+                return bad(key, "must be one name (no white space or commas), or empty");
+            }
+        }
+        if !(1..=4096).contains(&self.slurm_cpus_per_task) {
+            return bad("slurm_cpus_per_task", "must be between 1 and 4096");
+        }
+        if !(1..=1_000_000).contains(&self.slurm_max_tasks) {
+            return bad("slurm_max_tasks", "must be between 1 and 1000000");
+        }
+        let limits = Duration::from_millis(100)..=Duration::from_secs(600);
+        if !limits.contains(&self.slurm_poll_interval) {
+            return bad("slurm_poll_interval", "must be between 100ms and 10m");
+        }
+        for arg in self.sbatch_args() {
+            let name = arg.split_once('=').map_or(arg.as_str(), |(n, _)| n);
+            let short = SBATCH_OWN
+                .iter()
+                .any(|o| o.len() == 2 && name.starts_with(o) && !name.starts_with("--"));
+            if SBATCH_OWN.contains(&name) || short {
+                return Err(ConfigError::Invalid(format!(
+                    "slurm_sbatch_args: {arg} is set by the service for each phase"
+                )));
+            }
+        }
         Ok(())
+    }
+
+    /// The words of `slurm_sbatch_args`.
+    pub fn sbatch_args(&self) -> Vec<String> {
+        self.slurm_sbatch_args
+            .split_whitespace()
+            .map(str::to_string)
+            .collect()
     }
 
     /// The bearer tokens and their tenants from `auth_tokens` (empty: no authentication).
@@ -325,5 +436,60 @@ mod tests {
             std::fs::write(&f, bad).unwrap();
             assert!(Config::load(Some(&f)).is_err(), "{bad}");
         }
+    }
+    #[test]
+    fn issue11_executor_and_slurm_keys() {
+        let c = Config::load(None).unwrap();
+        assert_eq!(c.executor, Executor::Local);
+        assert_eq!(c.slurm_min_points, 20_000_000);
+        assert_eq!(c.slurm_poll_interval, Duration::from_secs(5));
+        assert!(c.sbatch_args().is_empty());
+        let dir = tempfile::tempdir().unwrap();
+        let f = dir.path().join("c.toml");
+        std::fs::write(
+            &f,
+            "executor = \"slurm\"\nslurm_min_points = 1000\nslurm_worker = \"/opt/qemd\"\n\
+             slurm_partition = \"batch\"\nslurm_cpus_per_task = 2\nslurm_max_tasks = 8\n\
+             slurm_sbatch_args = \"--time=2:00:00  --mem=6G\"\nslurm_poll_interval = \"250ms\"\n",
+        )
+        .unwrap();
+        let c = Config::load(Some(&f)).unwrap();
+        assert_eq!(c.executor, Executor::Slurm);
+        assert_eq!(c.slurm_min_points, 1000);
+        assert_eq!(c.slurm_worker, PathBuf::from("/opt/qemd"));
+        assert_eq!(c.slurm_partition, "batch");
+        assert_eq!((c.slurm_cpus_per_task, c.slurm_max_tasks), (2, 8));
+        assert_eq!(c.sbatch_args(), vec!["--time=2:00:00", "--mem=6G"]);
+        assert_eq!(c.slurm_poll_interval, Duration::from_millis(250));
+        // Each bad value is refused, naming its key.
+        for (bad, key) in [
+            ("executor = \"kubernetes\"", "executor"),
+            ("slurm_min_points = 0", "slurm_min_points"),
+            ("slurm_min_points = -5", "slurm_min_points"),
+            ("slurm_worker = \"qemd\"", "slurm_worker"),
+            ("slurm_partition = \"a b\"", "slurm_partition"),
+            ("slurm_account = \"a,b\"", "slurm_account"),
+            ("slurm_cpus_per_task = 0", "slurm_cpus_per_task"),
+            ("slurm_max_tasks = 0", "slurm_max_tasks"),
+            ("slurm_poll_interval = \"10ms\"", "slurm_poll_interval"),
+            ("slurm_poll_interval = \"1h\"", "slurm_poll_interval"),
+            ("slurm_sbatch_args = \"--array=0-9\"", "--array"),
+            (
+                "slurm_sbatch_args = \"--time=5 --dependency=afterok:1\"",
+                "--dependency",
+            ),
+            ("slurm_sbatch_args = \"-J name\"", "-J"),
+            ("slurm_sbatch_args = \"-c4\"", "-c4"),
+            ("slurm_sbatch_args = \"--output=/tmp/x\"", "--output"),
+        ] {
+            std::fs::write(&f, bad).unwrap();
+            match Config::load(Some(&f)) {
+                Err(ConfigError::Invalid(m)) => assert!(m.contains(key), "{bad}: {m}"),
+                other => panic!("{bad}: {other:?}"),
+            }
+        }
+        // Options the service does not set pass, short ones included.
+        std::fs::write(&f, "slurm_sbatch_args = \"-A acct -t 10 --qos=low\"").unwrap();
+        assert!(Config::load(Some(&f)).is_ok());
     }
 }

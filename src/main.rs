@@ -317,6 +317,7 @@ fn serve(a: ServeArgs) -> Result<()> {
             preview_points: config.preview_points,
             job_time_limit: config.job_time_limit,
             sync_time_limit: config.sync_time_limit,
+            slurm: slurm_settings(&config),
         },
         api: ApiSettings {
             tokens: config.tokens()?,
@@ -340,6 +341,23 @@ fn serve(a: ServeArgs) -> Result<()> {
     });
     runtime.shutdown_timeout(Duration::from_secs(2));
     result
+}
+
+/// The SLURM executor's settings when the configuration says `executor = "slurm"`.
+fn slurm_settings(config: &Config) -> Option<qem_denoise::jobs::slurm::SlurmSettings> {
+    use qem_denoise::config::Executor;
+    let name = |s: &str| (!s.is_empty()).then(|| s.to_string());
+    (config.executor == Executor::Slurm).then(|| qem_denoise::jobs::slurm::SlurmSettings {
+        min_points: config.slurm_min_points,
+        worker: (!config.slurm_worker.as_os_str().is_empty()).then(|| config.slurm_worker.clone()),
+        partition: name(&config.slurm_partition),
+        account: name(&config.slurm_account),
+        cpus_per_task: config.slurm_cpus_per_task,
+        max_tasks: config.slurm_max_tasks,
+        sbatch_args: config.sbatch_args(),
+        poll_interval: config.slurm_poll_interval,
+        client: qem_denoise::jobs::slurm::Client::default(),
+    })
 }
 
 fn init_threads(threads: Option<usize>) -> Result<()> {

@@ -18,17 +18,17 @@ const BIN: &str = env!("CARGO_BIN_EXE_qemd");
 const OCTET: &str = "application/octet-stream";
 
 /// A running `qemd serve`; killed (SIGKILL) when dropped.
-struct Server {
-    child: Child,
+pub(crate) struct Server {
+    pub(crate) child: Child,
     base: String,
-    data: PathBuf,
+    pub(crate) data: PathBuf,
     log: PathBuf,
 }
 
 impl Server {
     /// Starts the server with `config` (TOML) and `env`, listening and storing as the
     /// environment says (`QEMD_LISTEN`, `QEMD_DATA_DIR`).
-    fn start(root: &Path, config: &str, env: &[(&str, &str)]) -> Server {
+    pub(crate) fn start(root: &Path, config: &str, env: &[(&str, &str)]) -> Server {
         let cfg = root.join("qemd.toml");
         std::fs::write(&cfg, config).unwrap();
         let data = root.join("data");
@@ -72,16 +72,16 @@ impl Server {
         }
     }
 
-    fn url(&self, path: &str) -> String {
+    pub(crate) fn url(&self, path: &str) -> String {
         format!("{}{path}", self.base)
     }
 
-    fn kill(&mut self) {
+    pub(crate) fn kill(&mut self) {
         let _ = self.child.kill();
         let _ = self.child.wait();
     }
 
-    fn log(&self) -> String {
+    pub(crate) fn log(&self) -> String {
         std::fs::read_to_string(&self.log).unwrap_or_default()
     }
 }
@@ -92,14 +92,14 @@ impl Drop for Server {
     }
 }
 
-fn client() -> Client {
+pub(crate) fn client() -> Client {
     Client::builder()
         .timeout(Duration::from_secs(600))
         .build()
         .unwrap()
 }
 
-fn json_of(r: Response) -> (StatusCode, reqwest::header::HeaderMap, Value) {
+pub(crate) fn json_of(r: Response) -> (StatusCode, reqwest::header::HeaderMap, Value) {
     let status = r.status();
     let headers = r.headers().clone();
     let body = r.bytes().unwrap();
@@ -125,14 +125,14 @@ fn surface(n: usize, seed: u64) -> Vec<DVec3> {
         .collect()
 }
 
-fn write_cloud(path: &Path, n: usize, seed: u64) {
+pub(crate) fn write_cloud(path: &Path, n: usize, seed: u64) {
     Cloud::generated(surface(n, seed), None, ScalarType::F64)
         .write(path, None)
         .unwrap();
 }
 
 /// `qemd denoise input -o output args…`, returning the output's bytes.
-fn cli(input: &Path, output: &Path, args: &[&str]) -> Vec<u8> {
+pub(crate) fn cli(input: &Path, output: &Path, args: &[&str]) -> Vec<u8> {
     let out = Command::new(BIN)
         .arg("denoise")
         .arg(input)
@@ -150,7 +150,7 @@ fn cli(input: &Path, output: &Path, args: &[&str]) -> Vec<u8> {
     std::fs::read(output).unwrap()
 }
 
-fn upload(c: &Client, s: &Server, query: &str, bytes: Vec<u8>) -> Value {
+pub(crate) fn upload(c: &Client, s: &Server, query: &str, bytes: Vec<u8>) -> Value {
     let (status, headers, v) = json_of(
         c.post(s.url(&format!("/v1/uploads{query}")))
             .header("content-type", OCTET)
@@ -166,7 +166,7 @@ fn upload(c: &Client, s: &Server, query: &str, bytes: Vec<u8>) -> Value {
     v
 }
 
-fn post_job(
+pub(crate) fn post_job(
     c: &Client,
     s: &Server,
     body: &Value,
@@ -180,14 +180,14 @@ fn post_job(
     )
 }
 
-fn job(c: &Client, s: &Server, id: &str) -> Value {
+pub(crate) fn job(c: &Client, s: &Server, id: &str) -> Value {
     let (status, _, v) = json_of(c.get(s.url(&format!("/v1/jobs/{id}"))).send().unwrap());
     assert_eq!(status, StatusCode::OK, "{v}");
     v
 }
 
 /// Polls job `id` until it is no longer accepted or running.
-fn wait(c: &Client, s: &Server, id: &str) -> Value {
+pub(crate) fn wait(c: &Client, s: &Server, id: &str) -> Value {
     let start = Instant::now();
     loop {
         let v = job(c, s, id);
@@ -204,7 +204,13 @@ fn wait(c: &Client, s: &Server, id: &str) -> Value {
 }
 
 /// Polls job `id` until `ok` holds of its view.
-fn wait_for(c: &Client, s: &Server, id: &str, what: &str, ok: impl Fn(&Value) -> bool) -> Value {
+pub(crate) fn wait_for(
+    c: &Client,
+    s: &Server,
+    id: &str,
+    what: &str,
+    ok: impl Fn(&Value) -> bool,
+) -> Value {
     let start = Instant::now();
     loop {
         let v = job(c, s, id);
@@ -220,7 +226,7 @@ fn wait_for(c: &Client, s: &Server, id: &str, what: &str, ok: impl Fn(&Value) ->
     }
 }
 
-fn download(c: &Client, s: &Server, id: &str) -> Vec<u8> {
+pub(crate) fn download(c: &Client, s: &Server, id: &str) -> Vec<u8> {
     let r = c
         .get(s.url(&format!("/v1/jobs/{id}/result")))
         .send()
@@ -236,7 +242,7 @@ fn download(c: &Client, s: &Server, id: &str) -> Vec<u8> {
     bytes
 }
 
-fn sha256_hex(bytes: &[u8]) -> String {
+pub(crate) fn sha256_hex(bytes: &[u8]) -> String {
     Sha256::digest(bytes)
         .iter()
         .map(|b| format!("{b:02x}"))

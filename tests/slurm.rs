@@ -8,6 +8,8 @@
 //! The cluster is found through `SLURM_CONF`, else `target/slurm/slurm.conf` (the script's
 //! default). Without a running cluster every test here fails at once, saying how to start one.
 
+mod service;
+
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::Command;

@@ -188,9 +188,10 @@ impl From<JobsError> for ApiError {
             e @ JobsError::TimeLimit { .. } => ApiError::TimeLimit(format!(
                 "{e}; the run was stopped. Larger scans belong in a job (POST /v1/jobs)"
             )),
-            e @ (JobsError::Db(_) | JobsError::Io { .. } | JobsError::Internal(_)) => {
-                ApiError::Internal(e.to_string())
-            }
+            e @ (JobsError::Db(_)
+            | JobsError::Io { .. }
+            | JobsError::Slurm(_)
+            | JobsError::Internal(_)) => ApiError::Internal(e.to_string()),
         }
     }
 }

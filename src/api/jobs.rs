@@ -132,6 +132,12 @@ pub(crate) fn view(info: &JobInfo) -> Value {
         "outlier_alpha": r.spec.denoise.outlier_alpha,
         "output_format": r.spec.output_format,
         "tiled": r.spec.tile_points.is_some(),
+        "executor": r.spec.executor.name(),
+        "slurm": r.slurm.as_ref().map(|s| json!({
+            "jobs": s.jobs,
+            "earlier": s.earlier,
+            "resubmits": s.resubmits,
+        })),
         "created": timestamp(r.created_ms),
         "started": r.started_ms.map(timestamp),
         "finished": r.finished_ms.map(timestamp),

@@ -26,6 +26,9 @@
 //!   (the pipeline checks its cancel flag between batches and tiles).
 //! * [`preview`] builds the bounded, deterministic before/after previews the web page draws
 //!   (`data_dir/jobs/<id>/preview-v1/`).
+//! * [`slurm`] runs large jobs as SLURM array jobs when the service is configured with
+//!   `executor = "slurm"`: planned here, each phase an array job, progress from the committed
+//!   checkpoints, `DELETE` → `scancel`, re-attached after a restart.
 //! * [`metrics::Metrics`] holds the Prometheus metrics; [`progress::ProgressView`] what a running
 //!   job reports.
 //!
@@ -42,6 +45,7 @@ mod recovery;
 mod requests;
 mod run;
 mod service;
+pub mod slurm;
 pub mod store;
 mod sync;
 mod uploads;
@@ -130,6 +134,9 @@ pub enum JobsError {
         /// The setting that sets it (`job_time_limit`, `sync_time_limit`).
         key: &'static str,
     },
+    /// A SLURM command failed (executor `slurm`).
+    #[error(transparent)]
+    Slurm(#[from] slurm::SlurmError),
     /// Anything else: a bug or an environment failure (never shown to clients).
     #[error("{0}")]
     Internal(String),

@@ -90,6 +90,27 @@ impl JobProgress {
     }
 }
 
+impl JobProgress {
+    /// Sets the state from what is committed (a job on SLURM, whose tasks report elsewhere):
+    /// `phase` with `done` of `total` units, and the tiles committed of all.
+    pub fn committed(&self, phase: &str, done: u64, total: u64, tiles: (u64, u64)) {
+        let mut s = self.lock();
+        if s.phase != phase {
+            let (start, width) = span_of(&s.phase);
+            if s.total > 0 {
+                let reached = start + width * (s.done as f64 / s.total as f64).min(1.0);
+                s.high = s.high.max(reached);
+            }
+            // A later phase starts where it starts, at least.
+            s.high = s.high.max(span_of(phase).0);
+            s.phase = phase.to_string();
+        }
+        s.done = done;
+        s.total = total;
+        (s.tiles_done, s.tiles_total) = tiles;
+    }
+}
+
 impl Progress for JobProgress {
     fn phase(&self, name: &str, total: u64) {
         let mut s = self.lock();
@@ -137,5 +158,22 @@ mod tests {
         let v = p.snapshot();
         assert_eq!(v.tiles_done, 4);
         assert!(v.percent >= 57.0);
+    }
+
+    #[test]
+    fn committed_checkpoints_set_the_phase_and_tiles() {
+        let p = JobProgress::default();
+        p.committed("partition", 0, 1, (0, 8));
+        assert_eq!(p.snapshot().percent, 10.0);
+        p.committed("tiles", 2, 8, (2, 8));
+        let v = p.snapshot();
+        assert_eq!(
+            (v.phase.as_str(), v.tiles_done, v.tiles_total),
+            ("tiles", 2, 8)
+        );
+        // 35 + 55 × 2/8, to one decimal.
+        assert_eq!(v.percent, 48.8);
+        p.committed("stitch", 0, 1, (8, 8));
+        assert_eq!(p.snapshot().percent, 90.0);
     }
 }

@@ -16,6 +16,7 @@ use super::service::{Jobs, Running};
 use super::store::{JobRow, Status, Upload};
 use super::{JobsError, bridge};
 use crate::io::Format;
+use crate::pipeline::scaleout::Executor;
 use crate::pipeline::{self, Job, PipelineError, Report, RunOptions};
 
 /// Replaces server paths in a message: the input and output by `input` and `result`, the data
@@ -76,6 +77,7 @@ impl Jobs {
             progress: Arc::new(JobProgress::default()),
             dismissed: AtomicBool::new(false),
             done: watch::channel(false).0,
+            wake: tokio::sync::Notify::new(),
         });
         // Registered before the status changes, so that a DELETE seeing `running` finds it.
         let _ = self.lock_running().insert(id.clone(), running.clone());
@@ -109,6 +111,12 @@ impl Jobs {
                 return;
             }
         };
+        if row.spec.executor == Executor::Slurm {
+            // Planned and submitted here; a monitor task then follows it on the cluster and
+            // records its outcome (this worker goes on to the next job).
+            self.run_slurm(row, input, running).await;
+            return;
+        }
         let dir = self.job_dir(&id);
         let output = dir.join(format!("result.{}", row.spec.output_format));
         let deadline = Deadline::arm(

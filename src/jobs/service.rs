@@ -31,9 +31,11 @@ use super::metrics::Metrics;
 use super::progress::{JobProgress, ProgressView};
 use super::recovery::{clear_dir, remove_stale_files};
 use super::requests::{JobInfo, JobRequest, ResultFile, spec_error, validate_output};
+use super::slurm::SlurmSettings;
 use super::store::{JobRow, JobSpec, Status, Store};
 use super::{JobsError, bridge};
 use crate::io::Format;
+use crate::pipeline::scaleout::Executor;
 use crate::pipeline::{self, OutlierMode};
 
 /// The default of [`Settings::preview_points`]: most points on each side of a job's preview.
@@ -65,6 +67,9 @@ pub struct Settings {
     /// Wall-clock limit of a synchronous request (waiting for a core included): beyond it the
     /// run is cancelled and the answer is 504.
     pub sync_time_limit: Duration,
+    /// `executor = "slurm"`: point clouds of at least [`SlurmSettings::min_points`] points run
+    /// as SLURM array jobs ([`super::slurm`]); `None`: every job runs here.
+    pub slurm: Option<SlurmSettings>,
 }
 
 impl Default for Settings {
@@ -81,6 +86,7 @@ impl Default for Settings {
             preview_points: PREVIEW_POINTS,
             job_time_limit: super::limit::JOB_TIME_LIMIT,
             sync_time_limit: super::limit::SYNC_TIME_LIMIT,
+            slurm: None,
         }
     }
 }
@@ -93,6 +99,8 @@ pub(super) struct Running {
     pub(super) dismissed: AtomicBool,
     /// Becomes true when the worker is done with the job's files.
     pub(super) done: watch::Sender<bool>,
+    /// Wakes a SLURM job's monitor from its wait between polls (DELETE, shutdown).
+    pub(super) wake: Notify,
 }
 
 #[derive(Default)]
@@ -150,7 +158,13 @@ impl Jobs {
     /// The data directory or the database cannot be opened.
     pub async fn open(settings: Settings) -> Result<Jobs, JobsError> {
         let dir = settings.data_dir.clone();
-        let (store, queued) = bridge::blocking(move || -> Result<_, JobsError> {
+        let check = settings.slurm.as_ref().map(|s| s.client.clone());
+        let (store, queued, attach) = bridge::blocking(move || -> Result<_, JobsError> {
+            if let Some(client) = check {
+                // A service configured for SLURM that cannot run sbatch says so at start.
+                let version = client.check()?;
+                info!(sbatch = %version, "executor: slurm");
+            }
             for sub in ["uploads", "jobs", "tmp"] {
                 let p = dir.join(sub);
                 std::fs::create_dir_all(&p)
@@ -163,8 +177,14 @@ impl Jobs {
                 info!(jobs = requeued, "re-queued jobs interrupted by a restart");
             }
             remove_stale_files(&dir, &store)?;
-            let queued = store.ids_with_status(Status::Accepted)?;
-            Ok((store, queued))
+            // Jobs with SLURM jobs recorded re-attach at once; the others wait for a worker.
+            let attach = store.accepted_on_slurm()?;
+            let queued: Vec<String> = store
+                .ids_with_status(Status::Accepted)?
+                .into_iter()
+                .filter(|id| !attach.contains(id))
+                .collect();
+            Ok((store, queued, attach))
         })
         .await??;
         let threads = std::thread::available_parallelism().map_or(2, |n| n.get());
@@ -206,6 +226,15 @@ impl Jobs {
             let me = jobs.clone();
             let rx = jobs.inner.shutdown.subscribe();
             handles.push(tokio::spawn(async move { me.worker(rx).await }));
+        }
+        if !attach.is_empty() {
+            info!(jobs = attach.len(), "re-attaching to jobs on SLURM");
+        }
+        // Outside the worker slots (they hand the job to its monitor and return); joined at
+        // shutdown like the workers.
+        for id in attach {
+            let me = jobs.clone();
+            handles.push(tokio::spawn(async move { me.run_job(id).await }));
         }
         *jobs.inner.workers.lock().unwrap_or_else(|e| e.into_inner()) = handles;
         Ok(jobs)
@@ -354,8 +383,16 @@ impl Jobs {
         }
         validate_output(&spec, output)?;
         let settings = &self.inner.settings;
-        let tile_points = (!mesh && upload.points.is_none_or(|n| n > settings.job_tile_points))
-            .then_some(settings.job_tile_points);
+        // SLURM takes point clouds of a known size at or above its threshold (always tiled);
+        // meshes, smaller clouds and clouds of unknown size run here.
+        let executor = match (&settings.slurm, upload.points) {
+            (Some(sl), Some(n)) if !mesh && n >= sl.min_points => Executor::Slurm,
+            _ => Executor::Local,
+        };
+        let tile_points = (!mesh
+            && (executor == Executor::Slurm
+                || upload.points.is_none_or(|n| n > settings.job_tile_points)))
+        .then_some(settings.job_tile_points);
         let row = JobRow {
             id: new_id(),
             tenant: tenant.to_string(),
@@ -366,6 +403,7 @@ impl Jobs {
                 output_format: output,
                 memory_budget: settings.memory_budget,
                 tile_points,
+                executor,
             },
             created_ms: now_ms(),
             started_ms: None,
@@ -374,6 +412,7 @@ impl Jobs {
             error: None,
             result_size: None,
             result_sha256: None,
+            slurm: None,
         };
         {
             let mut q = self.lock_queue();
@@ -394,7 +433,7 @@ impl Jobs {
         inserted?;
         self.inner.wake.notify_one();
         self.update_gauges();
-        info!(job = %row.id, tenant, upload = %row.upload, "job accepted");
+        info!(job = %row.id, tenant, upload = %row.upload, executor = executor.name(), "job accepted");
         Ok(row)
     }
 
@@ -479,10 +518,16 @@ impl Jobs {
             let mut q = self.lock_queue();
             q.ids.retain(|x| x != id);
         }
+        if let Some(rec) = &info.row.slurm {
+            // Cancelled here too, not only by the job's monitor: an accepted job (queued after a
+            // restart) has none.
+            self.cancel_slurm(id, rec).await;
+        }
         let running = self.lock_running().get(id).cloned();
         if let Some(r) = running {
             r.dismissed.store(true, Ordering::SeqCst);
             r.cancel.store(true, Ordering::SeqCst);
+            r.wake.notify_waiters();
             let mut rx = r.done.subscribe();
             let stopped = tokio::time::timeout(Duration::from_secs(1), rx.wait_for(|d| *d))
                 .await
@@ -549,10 +594,7 @@ impl Jobs {
     /// stay as checkpoints and the jobs go back to `accepted`), then waits up to `grace` for the
     /// workers to wind down.
     pub async fn shutdown(&self, grace: Duration) {
-        self.inner.shutdown.send_replace(true);
-        for r in self.lock_running().values() {
-            r.cancel.store(true, Ordering::SeqCst);
-        }
+        self.begin_shutdown();
         let handles =
             std::mem::take(&mut *self.inner.workers.lock().unwrap_or_else(|e| e.into_inner()));
         let all = futures_util::future::join_all(handles);
@@ -567,6 +609,7 @@ impl Jobs {
         self.inner.shutdown.send_replace(true);
         for r in self.lock_running().values() {
             r.cancel.store(true, Ordering::SeqCst);
+            r.wake.notify_waiters();
         }
     }
 }

@@ -5,6 +5,7 @@
 //!           · sha256 · format (extension) · filename · hint (declared format) · points · faces
 //!  jobs     seq (order) · id · tenant · upload · status · spec (JSON) · created · started
 //!           · finished · report (JSON) · error · result_size · result_sha256
+//!           · slurm (JSON: the SLURM jobs submitted for it, executor = "slurm")
 //! ```
 //!
 //! Every method is synchronous and short; the async service calls them on the blocking pool
@@ -21,7 +22,9 @@ use std::sync::Mutex;
 use rusqlite::{Connection, OptionalExtension, Row, params};
 
 use super::JobsError;
+use super::slurm::SlurmRecord;
 use crate::io::Format;
+use crate::pipeline::scaleout::Executor;
 use crate::pipeline::{DenoiseSpec, Report};
 
 /// The status of a job, as OGC API – Processes names it.
@@ -109,6 +112,9 @@ pub struct JobSpec {
     pub memory_budget: u64,
     /// Forced tile size (large clouds), `None` to let the memory budget decide.
     pub tile_points: Option<u64>,
+    /// Where it runs (chosen at submission; rows of earlier versions are local).
+    #[serde(default)]
+    pub executor: Executor,
 }
 
 /// A job row.
@@ -138,6 +144,8 @@ pub struct JobRow {
     pub result_size: Option<u64>,
     /// Result SHA-256 (hex), when successful.
     pub result_sha256: Option<String>,
+    /// The SLURM jobs submitted for it (executor `slurm`, once submitted).
+    pub slurm: Option<SlurmRecord>,
 }
 
 const SCHEMA: &str = "
@@ -175,10 +183,13 @@ CREATE INDEX IF NOT EXISTS jobs_by_status ON jobs (status, seq);
 CREATE INDEX IF NOT EXISTS jobs_by_upload ON jobs (upload);
 ";
 
+/// Columns added after the first schema: (column, type), added to an older database at open.
+const ADDED_COLUMNS: [(&str, &str); 1] = [("slurm", "TEXT")];
+
 const UPLOAD_COLUMNS: &str =
     "id, tenant, created_ms, complete, length, size, sha256, format, filename, hint, points, faces";
 const JOB_COLUMNS: &str = "id, tenant, upload, status, spec, created_ms, started_ms, finished_ms, \
-                           report, error, result_size, result_sha256";
+                           report, error, result_size, result_sha256, slurm";
 
 /// SQLite integers are signed; sizes and counts never come near `i64::MAX`.
 fn to_i64(v: u64) -> i64 {
@@ -234,6 +245,7 @@ struct RawJob {
     error: Option<String>,
     result_size: Option<i64>,
     result_sha256: Option<String>,
+    slurm: Option<String>,
 }
 
 fn raw_job(r: &Row<'_>) -> rusqlite::Result<RawJob> {
@@ -250,6 +262,7 @@ fn raw_job(r: &Row<'_>) -> rusqlite::Result<RawJob> {
         error: r.get(9)?,
         result_size: r.get(10)?,
         result_sha256: r.get(11)?,
+        slurm: r.get(12)?,
     })
 }
 
@@ -267,6 +280,12 @@ impl RawJob {
             }
             None => None,
         };
+        let slurm = match &self.slurm {
+            Some(text) => {
+                Some(serde_json::from_str(text).map_err(|e| corrupt("slurm", e.to_string()))?)
+            }
+            None => None,
+        };
         Ok(JobRow {
             id: self.id,
             tenant: self.tenant,
@@ -280,8 +299,23 @@ impl RawJob {
             error: self.error,
             result_size: opt_u64(self.result_size),
             result_sha256: self.result_sha256,
+            slurm,
         })
     }
+}
+
+/// Adds the [`ADDED_COLUMNS`] a database of an earlier version lacks.
+fn migrate(conn: &Connection) -> rusqlite::Result<()> {
+    let have: Vec<String> = conn
+        .prepare("SELECT name FROM pragma_table_info('jobs')")?
+        .query_map([], |r| r.get(0))?
+        .collect::<rusqlite::Result<_>>()?;
+    for (col, ty) in ADDED_COLUMNS {
+        if !have.iter().any(|h| h == col) {
+            conn.execute_batch(&format!("ALTER TABLE jobs ADD COLUMN {col} {ty}"))?;
+        }
+    }
+    Ok(())
 }
 
 /// The SQLite store. See the [module overview](self).
@@ -307,6 +341,7 @@ impl Store {
         conn.pragma_update(None, "journal_mode", "WAL")?;
         conn.pragma_update(None, "synchronous", "NORMAL")?;
         conn.execute_batch(SCHEMA)?;
+        migrate(&conn)?;
         Ok(Store {
             conn: Mutex::new(conn),
         })
@@ -319,6 +354,7 @@ impl Store {
     pub fn in_memory() -> Result<Store, JobsError> {
         let conn = Connection::open_in_memory()?;
         conn.execute_batch(SCHEMA)?;
+        migrate(&conn)?;
         Ok(Store {
             conn: Mutex::new(conn),
         })
@@ -509,6 +545,36 @@ impl Store {
         Ok(ids)
     }
 
+    /// Ids of the accepted jobs that have SLURM jobs recorded, oldest first (start-up: they
+    /// re-attach at once instead of waiting for a worker).
+    ///
+    /// # Errors
+    /// SQLite failures.
+    pub fn accepted_on_slurm(&self) -> Result<Vec<String>, JobsError> {
+        let conn = self.conn();
+        let mut st = conn.prepare(
+            "SELECT id FROM jobs WHERE status = 'accepted' AND slurm IS NOT NULL ORDER BY seq",
+        )?;
+        let ids = st
+            .query_map([], |r| r.get(0))?
+            .collect::<rusqlite::Result<Vec<String>>>()?;
+        Ok(ids)
+    }
+
+    /// Stores the SLURM jobs of job `id` (synchronously committed before they are relied on).
+    ///
+    /// # Errors
+    /// SQLite failures.
+    pub fn set_slurm(&self, id: &str, record: &SlurmRecord) -> Result<(), JobsError> {
+        let text = serde_json::to_string(record)
+            .map_err(|e| JobsError::Internal(format!("cannot encode a SLURM record: {e}")))?;
+        let _ = self.conn().execute(
+            "UPDATE jobs SET slurm = ?2 WHERE id = ?1",
+            params![id, text],
+        )?;
+        Ok(())
+    }
+
     /// Job counts by status (every status, zeros included).
     ///
     /// # Errors
@@ -634,6 +700,7 @@ mod tests {
                 output_format: Format::Ply,
                 memory_budget: 1 << 30,
                 tile_points: Some(5000),
+                executor: Executor::Local,
             },
             created_ms: 1,
             started_ms: None,
@@ -642,6 +709,7 @@ mod tests {
             error: None,
             result_size: None,
             result_sha256: None,
+            slurm: None,
         }
     }
 
@@ -706,5 +774,47 @@ mod tests {
         assert!(counts.contains(&(Status::Failed, 0)));
         let (page, total) = s.list_jobs("a", Some(Status::Dismissed), 10, 0).unwrap();
         assert_eq!((page.len(), total), (1, 1));
+    }
+
+    #[test]
+    fn slurm_records_persist_and_old_databases_gain_the_column() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("q.sqlite");
+        {
+            // A database of the first schema (no `slurm` column) with a job in it.
+            let conn = Connection::open(&path).unwrap();
+            conn.execute_batch(SCHEMA).unwrap();
+            let mut spec = serde_json::to_value(job("old", "t").spec).unwrap();
+            assert!(spec.as_object_mut().unwrap().remove("executor").is_some());
+            conn.execute(
+                "INSERT INTO jobs (id, tenant, upload, status, spec, created_ms) \
+                 VALUES ('old', 't', 'u', 'accepted', ?1, 1)",
+                params![spec.to_string()],
+            )
+            .unwrap();
+        }
+        let s = Store::open(&path).unwrap();
+        let old = s.job(None, "old").unwrap().unwrap();
+        assert_eq!(old.spec.executor, Executor::Local);
+        assert_eq!(old.slurm, None);
+        let mut j = job("j1", "a");
+        j.spec.executor = Executor::Slurm;
+        s.insert_job(&j).unwrap();
+        assert!(s.accepted_on_slurm().unwrap().is_empty());
+        let rec = SlurmRecord {
+            jobs: vec![crate::jobs::slurm::ArrayJob {
+                phase: crate::pipeline::scaleout::Phase::Partition,
+                id: "42".into(),
+                tasks: 1,
+            }],
+            ..SlurmRecord::default()
+        };
+        s.set_slurm("j1", &rec).unwrap();
+        drop(s);
+        let s = Store::open(&path).unwrap();
+        let j = s.job(None, "j1").unwrap().unwrap();
+        assert_eq!(j.spec.executor, Executor::Slurm);
+        assert_eq!(j.slurm, Some(rec));
+        assert_eq!(s.accepted_on_slurm().unwrap(), vec!["j1"]);
     }
 }

@@ -10,8 +10,10 @@ use super::lock::PhaseLock;
 use super::url::WorkUrl;
 use super::worker::{Hooks, committed_stitch, run_task, stitch_into};
 use super::{Phase, ScaleoutError};
+use crate::denoise::{PhaseTiming, Stats};
 use crate::io::{self, AtomicFile, Format, IoError};
-use crate::pipeline::{NormalsAction, PipelineError};
+use crate::pipeline::{NormalsAction, PipelineError, Report};
+use crate::tiling::workdir::WorkDir;
 
 /// What `finish` delivered.
 #[derive(Debug, Clone, serde::Serialize)]
@@ -129,4 +131,64 @@ fn deliver(src: &Path, out: &Path) -> Result<&'static str, IoError> {
     std::io::copy(&mut from, &mut to).map_err(|e| IoError::io(out, e))?;
     to.commit()?;
     Ok("copied")
+}
+
+/// The report of a job whose stitch is committed in `work`, as [`crate::pipeline::run`] gives
+/// for a tiled run: the counts of the stitch and every tile's committed outcome summed (in tile
+/// order, so the same for any task count). Times and threads are the caller's to fill in: the
+/// tasks ran elsewhere (`wall_s`, `cpu_s`, `peak_rss_bytes` are 0, `phases` the kernel's summed
+/// over the tiles).
+///
+/// # Errors
+/// A work directory without a plan, a stitch not committed, a tile not committed.
+pub fn summary(work: &WorkUrl) -> Result<Report, ScaleoutError> {
+    let dir = work.local()?;
+    let frozen = FrozenJob::load(dir)?;
+    let s = committed_stitch(dir, &frozen).ok_or_else(|| ScaleoutError::NotReady {
+        path: dir.to_path_buf(),
+        phase: Phase::Stitch,
+        detail: "a committed stitch for its report".into(),
+    })?;
+    let w = WorkDir::persistent(dir).map_err(|e| IoError::io(dir, e))?;
+    let plan = &frozen.plan;
+    let mut stats = Stats::default();
+    let (mut growths, mut empty, mut result_bytes) = (0u64, 0u64, 0u64);
+    for t in 0..plan.tiles.len() {
+        let o = w.committed_tile(t).ok_or_else(|| ScaleoutError::NotReady {
+            path: dir.to_path_buf(),
+            phase: Phase::Stitch,
+            detail: format!("tile {t} committed for its report"),
+        })?;
+        stats.merge(&o.stats);
+        growths += u64::from(o.halo_growths);
+        empty += u64::from(o.owned == 0);
+        result_bytes += o.result_bytes;
+    }
+    stats.non_finite = plan.points - plan.finite;
+    stats.points = plan.points;
+    let kernel = std::mem::take(&mut stats.phases);
+    let spill = (0..plan.tiles.len())
+        .filter_map(|t| std::fs::metadata(w.spill(t)).ok())
+        .map(|m| m.len())
+        .sum::<u64>();
+    let mut r = Report::empty(&frozen.job(dir), "tiled");
+    r.normals = s.normals;
+    r.points_in = plan.points;
+    r.points_out = s.written;
+    r.dropped_non_finite = s.dropped;
+    r.outliers_found = s.found;
+    r.tiles = plan.tiles.len() as u64;
+    r.empty_tiles = empty;
+    r.halo_growths = growths;
+    r.bytes_spilled = spill + result_bytes;
+    r.stats = stats;
+    r.phases = kernel
+        .into_iter()
+        .map(|p| PhaseTiming {
+            name: format!("tiles.{}", p.name),
+            ..p
+        })
+        .collect();
+    r.threads = 0;
+    Ok(r)
 }

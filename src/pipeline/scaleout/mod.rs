@@ -43,13 +43,38 @@ use thiserror::Error;
 use super::PipelineError;
 use crate::io::IoError;
 
-pub use finish::{Finished, finish};
+pub use finish::{Finished, finish, summary};
 pub use frozen::FrozenJob;
 pub use index::{TaskIndex, resolve_index};
 pub use plan::{PlanRequest, Planned, plan};
 pub use status::{PhaseStatus, Status, status};
 pub use url::WorkUrl;
 pub use worker::{Hooks, TaskReport, run_task};
+
+/// Where a service job runs (the `executor` key of `qemd serve`'s configuration, and each job's
+/// choice, frozen at submission): on the service's own node, or as SLURM array jobs of the
+/// phases below (`crate::jobs`, feature `service`).
+#[derive(
+    Debug, Clone, Copy, Default, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize,
+)]
+#[serde(rename_all = "lowercase")]
+pub enum Executor {
+    /// In the service's process.
+    #[default]
+    Local,
+    /// As SLURM array jobs, one per phase.
+    Slurm,
+}
+
+impl Executor {
+    /// The name, as configured and reported.
+    pub fn name(self) -> &'static str {
+        match self {
+            Executor::Local => "local",
+            Executor::Slurm => "slurm",
+        }
+    }
+}
 
 /// A phase that runs as tasks.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
