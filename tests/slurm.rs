@@ -15,6 +15,8 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::{Duration, Instant};
 
+use qem_denoise::jobs::slurm::client::TERMINAL;
+
 use crate::scaleout::{ok, surface};
 use crate::util::s;
 
@@ -26,20 +28,6 @@ const STALE_REASON: Duration = Duration::from_secs(90);
 
 /// The phases in the order they run (as `qemd plan --json` names them).
 const PHASES: [&str; 4] = ["partition", "globals", "tiles", "stitch"];
-
-/// States a job (array task) does not leave.
-const TERMINAL: [&str; 10] = [
-    "COMPLETED",
-    "FAILED",
-    "CANCELLED",
-    "TIMEOUT",
-    "NODE_FAIL",
-    "OUT_OF_MEMORY",
-    "PREEMPTED",
-    "BOOT_FAIL",
-    "DEADLINE",
-    "SPECIAL_EXIT",
-];
 
 /// The running cluster's client configuration.
 struct Cluster {
@@ -118,17 +106,22 @@ impl Cluster {
                 &ids.join(","),
             ],
         );
-        out.lines()
-            .filter_map(|l| {
-                let mut f = l.trim().splitn(3, '|');
-                Some((
-                    f.next()?.to_string(),
-                    f.next()?.to_string(),
-                    f.next()?.to_string(),
-                ))
-            })
-            .collect()
+        parse_states(&out)
     }
+}
+
+/// The `id|state|reason` lines of `squeue -o %i|%T|%r` (or `sacct`'s like them).
+fn parse_states(out: &str) -> Vec<(String, String, String)> {
+    out.lines()
+        .filter_map(|l| {
+            let mut f = l.trim().splitn(3, '|');
+            Some((
+                f.next()?.to_string(),
+                f.next()?.to_string(),
+                f.next()?.to_string(),
+            ))
+        })
+        .collect()
 }
 
 /// One job on the cluster: its input, work directory, logs and the SLURM jobs submitted for it

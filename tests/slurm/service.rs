@@ -13,7 +13,7 @@ use reqwest::StatusCode;
 use reqwest::blocking::Client;
 use serde_json::{Value, json};
 
-use super::{Cluster, TERMINAL, TIMEOUT};
+use super::{Cluster, TERMINAL, TIMEOUT, parse_states};
 use crate::server::{
     Server, cli, client, download, json_of, post_job, sha256_hex, upload, wait, wait_for,
     write_cloud,
@@ -36,16 +36,7 @@ fn named(c: &Cluster, id: &str) -> Vec<(String, String, String)> {
         "squeue",
         &["-h", "-r", "-t", "all", "-o", "%i|%T|%r", &name],
     );
-    out.lines()
-        .filter_map(|l| {
-            let mut f = l.trim().splitn(3, '|');
-            Some((
-                f.next()?.to_string(),
-                f.next()?.to_string(),
-                f.next()?.to_string(),
-            ))
-        })
-        .collect()
+    parse_states(&out)
 }
 
 /// Cancels whatever SLURM jobs of the service's job `id` are left when a test ends (a failed

@@ -162,6 +162,22 @@ pub(crate) fn standard_fields(format: u8) -> Vec<(&'static str, ScalarType, usiz
     f
 }
 
+/// Scalar type and count of the field an Extra Bytes descriptor `d` describes: `data_type` 0 is
+/// `options` untyped bytes, 1–10 one value, 11–30 (deprecated) two or three; `None` for any
+/// other code, which ends the walk.
+fn extra_shape(d: &[u8]) -> Option<(ScalarType, usize)> {
+    let code = d[2];
+    Some(match code {
+        0 => (ScalarType::U8, usize::from(d[3])),
+        1..=10 => (extra_type(code)?, 1),
+        11..=30 => (
+            extra_type((code - 1) % 10 + 1)?,
+            usize::from((code - 1) / 10 + 1),
+        ),
+        _ => return None,
+    })
+}
+
 /// Scalar type of an Extra Bytes `data_type` 1–10.
 fn extra_type(code: u8) -> Option<ScalarType> {
     use ScalarType::*;
@@ -241,14 +257,8 @@ pub(crate) fn schema(format: u8, record_len: usize, extra_vlr: Option<&[u8]>) ->
         } else {
             name
         };
-        let (ty, count) = match code {
-            0 => (ScalarType::U8, usize::from(d[3])),
-            1..=10 => (extra_type(code).expect("1..=10"), 1),
-            11..=30 => (
-                extra_type((code - 1) % 10 + 1).expect("1..=10"),
-                usize::from((code - 1) / 10 + 1),
-            ),
-            _ => break,
+        let Some((ty, count)) = extra_shape(d) else {
+            break;
         };
         if count == 0 || at + count * ty.size() > record_len {
             break;
@@ -299,14 +309,8 @@ pub(crate) fn extra_layout(format: u8, record_len: usize, extra_vlr: Option<&[u8
         .chunks_exact(EXTRA_BYTES_DESCRIPTOR)
     {
         let code = d[2];
-        let (ty, count) = match code {
-            0 => (ScalarType::U8, usize::from(d[3])),
-            1..=10 => (extra_type(code).expect("1..=10"), 1),
-            11..=30 => (
-                extra_type((code - 1) % 10 + 1).expect("1..=10"),
-                usize::from((code - 1) / 10 + 1),
-            ),
-            _ => break,
+        let Some((ty, count)) = extra_shape(d) else {
+            break;
         };
         if count == 0 || at + count * ty.size() > record_len {
             break;
