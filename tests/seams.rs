@@ -341,12 +341,19 @@ fn issue9_las_noise_and_withheld_points_stay_any_tile_size() {
         let (c, f) = tag(i);
         f != 0 || (!noise_moves && (c == 7 || c == 18))
     };
+    // Two runs per tile size: in a debug build (the README's `cargo test`) one tiled size is
+    // enough to hold the rule; the release suite takes every size.
+    let sizes: &[u64] = if cfg!(debug_assertions) {
+        &[700]
+    } else {
+        SIZES
+    };
     for noise_moves in [false, true] {
         let mut j = job(Params::default());
         if noise_moves {
             j.spec.classes = Some("0-255".parse().unwrap());
         }
-        let reports = assert_seamless(&input, &j, SIZES);
+        let reports = assert_seamless(&input, &j, sizes);
         let held = (0..pts.len()).filter(|&i| stays(i, noise_moves)).count();
         assert_eq!(
             reports[0].stats.held, held as u64,
