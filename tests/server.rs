@@ -976,19 +976,7 @@ fn killed_server_resumes_the_job_from_its_checkpoints() {
 
     // SIGKILL as soon as a tile checkpoint exists.
     let start = Instant::now();
-    let checkpoints = |dir: &Path| {
-        std::fs::read_dir(dir)
-            .map(|it| {
-                it.flatten()
-                    .filter(|e| {
-                        let n = e.file_name().to_string_lossy().into_owned();
-                        n.starts_with("tile_") && n.ends_with(".json")
-                    })
-                    .count()
-            })
-            .unwrap_or(0)
-    };
-    while checkpoints(&work) == 0 {
+    while tile_checkpoints(&work) == 0 {
         assert!(
             start.elapsed() < Duration::from_secs(300),
             "no checkpoint; log:\n{}",
@@ -997,7 +985,7 @@ fn killed_server_resumes_the_job_from_its_checkpoints() {
         std::thread::sleep(Duration::from_millis(1));
     }
     s.kill();
-    let kept = checkpoints(&work);
+    let kept = tile_checkpoints(&work);
     assert!(kept >= 1);
 
     // Restart on the same data directory: the job is re-queued and resumes.
@@ -1379,4 +1367,18 @@ fn issue15_sync_request_over_its_time_limit_answers_504() {
         sync_count(&c, &s, "ok"),
         "qemd_sync_requests_total{outcome=\"ok\"} 1"
     );
+}
+
+/// Committed tile checkpoints (`tile_*.json`) in a tiled job's work directory.
+pub(crate) fn tile_checkpoints(work: &Path) -> usize {
+    std::fs::read_dir(work)
+        .map(|it| {
+            it.flatten()
+                .filter(|e| {
+                    let n = e.file_name().to_string_lossy().into_owned();
+                    n.starts_with("tile_") && n.ends_with(".json")
+                })
+                .count()
+        })
+        .unwrap_or(0)
 }

@@ -118,16 +118,7 @@ fn wait_submitted_and_running(c: &Client, s: &Server, cl: &Cluster, id: &str) ->
 
 /// Committed tile checkpoints in the job's work directory.
 fn tile_checkpoints(s: &Server, id: &str) -> usize {
-    std::fs::read_dir(s.data.join("jobs").join(id).join("work"))
-        .map(|it| {
-            it.flatten()
-                .filter(|e| {
-                    let n = e.file_name().to_string_lossy().into_owned();
-                    n.starts_with("tile_") && n.ends_with(".json")
-                })
-                .count()
-        })
-        .unwrap_or(0)
+    crate::server::tile_checkpoints(&s.data.join("jobs").join(id).join("work"))
 }
 
 #[test]
