@@ -97,11 +97,12 @@ pub fn with_exact_halo<V: Default>(
         Some(p) => p,
         None => super::load_tile(dir, plan, t)?,
     };
-    budget.check_points(t, pts.len() as u64, plan.halo)?;
+    let first = plan.tile_halo(t);
+    budget.check_points(t, pts.len() as u64, first)?;
     let mut value = V::default();
     let mut growth = Growth {
         loaded: pts.len() as u64,
-        halo: plan.halo,
+        halo: first,
         ..Growth::default()
     };
     let owned = |p: &&TilePoint| p.owned;
@@ -110,7 +111,7 @@ pub fn with_exact_halo<V: Default>(
         // Isolated points may have fewer than k points within reach; the cloud has more.
         pts.iter().filter(owned).map(|p| (p.index, p.p)).collect()
     } else if pts.iter().any(|p| p.owned) {
-        let (v, exact) = run_kernel(plan, budget, &pts, plan.region(t, plan.halo), &mut f)?;
+        let (v, exact) = run_kernel(plan, budget, &pts, plan.region(t, first), &mut f)?;
         merge(&mut value, v);
         pts.iter()
             .zip(&exact)
@@ -125,7 +126,7 @@ pub fn with_exact_halo<V: Default>(
     // The limit is finite: the plan's bounds hold only points within ±MAX_COORD.
     let limit = MAX_HALO_FRACTION * plan.bounds.diagonal().max(f64::MIN_POSITIVE) * 2.0;
     let sufficient = plan::sufficient_halo(plan.isolation, hops);
-    let mut halo = plan.halo;
+    let mut halo = first;
     // Whether every pending point is pending only because too few points were loaded for it.
     let mut only_few = first_few;
     let mut sizes = SpillSizes::new(plan.tiles.len());

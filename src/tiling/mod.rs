@@ -4,10 +4,12 @@
 //! # Brief overview
 //!
 //! 1. **Plan** ([`plan::Planner`]): one streaming pass collects bounds, counts and a
-//!    deterministic sample, and splits space into tiles by point count (a k-d split).
+//!    deterministic sample, and splits space into tiles by point count (a k-d split). Each tile
+//!    gets a halo: the cloud's, or narrower where that would load more than the budget allows
+//!    one run (a dense cluster next to the tile).
 //! 2. **Partition** ([`spill::SpillWriter`]): a second pass writes every finite point, with its
 //!    global index, to the spill file of the tile that owns it, and a halo copy to every other
-//!    tile whose box grown by the halo contains it.
+//!    tile whose box grown by its halo contains it.
 //! 3. **Process** ([`process_tile`]): each tile loads its points and runs
 //!    [`crate::denoise::cloud::run`] on them with the tile's region. A result is kept only when
 //!    it is provably the whole-cloud result (every k-NN ball it depends on lies inside the

@@ -57,6 +57,11 @@ pub struct Tile {
     pub core: Aabb,
     /// Points the sample predicts it owns.
     pub estimate: u64,
+    /// Its first load's halo: the plan's, or narrower where that would load more points than the
+    /// budget allows one run ([`Planner::finish_within`]). 0 in plans written before it existed,
+    /// read as the plan's ([`Plan::tile_halo`]).
+    #[serde(default)]
+    pub halo: f64,
 }
 
 /// The result of planning.
@@ -74,7 +79,7 @@ pub struct Plan {
     pub nodes: Vec<Node>,
     /// The tiles, by index.
     pub tiles: Vec<Tile>,
-    /// Initial halo width (in coordinate units).
+    /// Initial halo width (in coordinate units), the widest of any tile's ([`Tile::halo`]).
     pub halo: f64,
     /// The cloud's isolation radius ([`crate::denoise::isolation`]), drawn from the same sample
     /// as the in-memory path draws it; it bounds every list, hence the halo a tile can need.
@@ -101,6 +106,29 @@ impl Plan {
                 } => at = if p[axis] < value { left } else { right },
             }
         }
+    }
+
+    /// The halo of tile `t`'s first load: its own ([`Tile::halo`]), or the plan's in plans
+    /// written before tiles had one.
+    pub fn tile_halo(&self, t: usize) -> f64 {
+        let h = self.tiles[t].halo;
+        if h > 0.0 { h } else { self.halo }
+    }
+
+    /// Every tile whose box, grown by its own halo ([`Plan::tile_halo`]), contains `p`: the
+    /// tiles whose first load holds `p`, appended to `out`.
+    pub fn near_tiles(&self, p: DVec3, out: &mut Vec<usize>) {
+        let from = out.len();
+        self.near(p, self.halo, out);
+        let mut keep = from;
+        for i in from..out.len() {
+            let t = out[i];
+            if self.tile_halo(t) >= self.halo || self.in_region(t, self.tile_halo(t), p) {
+                out[keep] = t;
+                keep += 1;
+            }
+        }
+        out.truncate(keep);
     }
 
     /// Every tile whose box, grown by `halo` in every direction, contains `p`, appended to `out`.
@@ -235,22 +263,19 @@ impl Planner {
         self.finish_within(target, u64::MAX, k, reach)
     }
 
-    /// As [`Planner::finish`], with tiles made smaller (down to [`MIN_TARGET`] points) while the
-    /// sample predicts that one would load more than `max_load` points with its halo: small tiles
-    /// over dense clusters, or a halo wide against the tile, would otherwise exceed the memory
-    /// budget. The caller checks the exact loads after the partition.
+    /// As [`Planner::finish`], within a budget of `max_load` points per kernel run (owned plus
+    /// halo, with a tenth of margin for the sample's estimate). The caller checks the exact loads
+    /// after the partition. Two plans are weighed (issue 16):
+    /// - **A**, the tiles of `target` with the halo of each tile that would load too much
+    ///   narrowed to what fits ([`Plan::fit_halos`]); owned points near a narrowed face are
+    ///   redone by halo growth;
+    /// - **B**, smaller tiles with the whole halo, down to where shrinking stops removing load
+    ///   ([`shrink`]), then narrowed the same way.
     ///
-    /// Shrinking stops at what no tile size removes: before the first shrink the smallest tiles'
-    /// load is estimated, and when it exceeds `max_load` the first plan is kept (the exact check
-    /// refuses it); when it fits only without the tenth of margin, the first tiles within 5 % of
-    /// it are kept (issue 16).
+    /// A is returned when nothing had to be narrowed; otherwise B unless its halo copies make
+    /// its summed loads more than [`SHRINK_COST`] times A's (a dense cluster inside the halo
+    /// of every small tile near it).
     ///
-    /// Each round checks the cancel flag (issue 15: a small budget can take dozens of rounds
-    /// over the whole sample, seconds after the read has ended).
-    ///
-    /// # Errors
-    /// [`TilingError::Cancelled`] once the flag installed with
-    /// [`crate::neighbours::with_cancel`] is set.
     pub fn finish_within(
         self,
         target: u64,
@@ -302,7 +327,10 @@ impl Planner {
                 &mut nodes,
                 &mut tiles,
             );
-            let plan = Plan {
+            for tile in &mut tiles {
+                tile.halo = halo;
+            }
+            Plan {
                 bounds,
                 origin,
                 points: self.points,
@@ -312,65 +340,174 @@ impl Planner {
                 halo,
                 isolation,
                 short_lists: false,
-            };
-            let load = plan.largest_load(&pts, weight);
-            (plan, load)
+            }
         };
-        let mut target = target.max(1);
+        let target = target.max(1);
         // A tenth of margin: the sample's estimate is not the exact count.
-        let mut accept = 0.9 * max_load as f64;
-        let mut floor_probed = false;
-        // Each round shrinks the target by at least 10 %: the loop ends.
-        loop {
-            if crate::neighbours::cancel_requested() {
-                return Err(TilingError::Cancelled);
-            }
-            let (plan, load) = plan_at(target);
-            if load <= accept || target <= MIN_TARGET {
-                return Ok(plan);
-            }
-            // Before the first shrink, the smallest tiles' load `f`: what no shrinking removes
-            // (a dense cluster inside a halo sized by the cloud's typical spacing loads whole,
-            // whatever the tile). More tiles than needed only multiply the halo copies (a 30 M
-            // cluttered scene went to 30 339 tiles and 18 GB of spill, docs/BENCHMARKS.md).
-            // - `f` over the budget: shrinking cannot help; this plan is kept and the partition's
-            //   exact check refuses it before any tile work.
-            // - `f` within the budget but above the margin: the first tiles whose load is within
-            //   5 % of `f` (and of the budget) are kept; the exact check decides.
-            if !floor_probed {
-                floor_probed = true;
-                let (_, f) = plan_at(MIN_TARGET);
-                if f > max_load as f64 {
-                    return Ok(plan);
-                }
-                accept = accept.max((1.05 * f).min(max_load as f64));
-                if load <= accept {
-                    return Ok(plan);
-                }
-            }
-            let shrunk = (target as f64 * (0.9 * max_load as f64 / load) * 0.95) as u64;
-            target = shrunk.min(target * 9 / 10).max(MIN_TARGET);
+        let accept = 0.9 * max_load as f64;
+        if crate::neighbours::cancel_requested() {
+            return Err(TilingError::Cancelled);
         }
+        // Plan A: the budget's tiles, with the halos that would overload a run narrowed.
+        let mut fitted = plan_at(target);
+        let (fitted_max, fitted_total) = fitted.fit_halos(&pts, weight, accept);
+        let narrowed = fitted.tiles.iter().any(|t| t.halo < halo);
+        if fitted_max <= accept && !narrowed {
+            return Ok(fitted);
+        }
+        // Plan B: smaller tiles with the whole halo, as far as shrinking helps, then narrowed.
+        let (mut shrunk, accept_shrunk) = shrink(&plan_at, &pts, weight, target, max_load)?;
+        let (shrunk_max, shrunk_total) = shrunk.fit_halos(&pts, weight, accept_shrunk);
+        // A keeps the tiles and pays in halo growth for the owned points near narrowed faces; B
+        // pays in halo copies (every copy is loaded, listed and spilled). B is taken unless its
+        // copies make the loads more than `SHRINK_COST` times A's, or A is the one that fits.
+        let take_shrunk = fitted_max > accept
+            || (shrunk_max <= accept_shrunk && shrunk_total <= SHRINK_COST * fitted_total);
+        Ok(if take_shrunk { shrunk } else { fitted })
     }
 }
 
+/// Plan B of [`Planner::finish_within`]: shrinks the tile target (down to [`MIN_TARGET`])
+/// until the sample predicts every first load with the whole halo within the bound, and returns
+/// that plan and the bound it met.
+///
+/// Shrinking stops at what no tile size removes: before the first shrink the smallest tiles'
+/// load `f` is estimated (a dense cluster inside a halo sized by the cloud's typical spacing
+/// loads whole, whatever the tile; a 30 M cluttered scene went to 30 339 tiles and 18 GB of
+/// spill, docs/BENCHMARKS.md):
+/// - `f` over the budget: shrinking cannot help; the first plan is kept.
+/// - `f` within the budget but above the margin: the first tiles whose load is within 5 % of `f`
+///   (and of the budget) are kept.
+///
+/// Each round checks the cancel flag (issue 15: a small budget can take dozens of rounds over
+/// the whole sample, seconds after the read has ended).
+fn shrink(
+    plan_at: &impl Fn(u64) -> Plan,
+    pts: &[DVec3],
+    weight: f64,
+    mut target: u64,
+    max_load: u64,
+) -> Result<(Plan, f64), TilingError> {
+    let mut accept = 0.9 * max_load as f64;
+    let mut floor_probed = false;
+    // Each round shrinks the target by at least 10 %: the loop ends.
+    loop {
+        if crate::neighbours::cancel_requested() {
+            return Err(TilingError::Cancelled);
+        }
+        let plan = plan_at(target);
+        let load = plan.largest_load(pts, weight);
+        if load <= accept || target <= MIN_TARGET {
+            return Ok((plan, accept));
+        }
+        if !floor_probed {
+            floor_probed = true;
+            let f = plan_at(MIN_TARGET).largest_load(pts, weight);
+            if f > max_load as f64 {
+                return Ok((plan, accept));
+            }
+            accept = accept.max((1.05 * f).min(max_load as f64));
+            if load <= accept {
+                return Ok((plan, accept));
+            }
+        }
+        let shrunk = (target as f64 * (0.9 * max_load as f64 / load) * 0.95) as u64;
+        target = shrunk.min(target * 9 / 10).max(MIN_TARGET);
+    }
+}
+
+/// How many times plan A's summed first loads plan B's may reach and still be taken
+/// ([`Planner::finish_within`]), both as the sample predicts them. Measured (docs/BENCHMARKS.md,
+/// issue 16, 2026-12-04): at a predicted 1.6 × (`lone-star.copc.laz` at 128 MiB) B ran 1.26 ×
+/// faster; at 1.9 × (a 200 k cluttered scene at 64 MiB) both ran alike; at 3–5 × (the same scene
+/// at 48 MiB, `lone-star` at 64 MiB, a 30 M cluttered scene at 1 GiB) A ran 1.3–2.8 × faster.
+const SHRINK_COST: f64 = 1.75;
+
 /// The smallest tile target [`Planner::finish_within`] shrinks to.
 pub const MIN_TARGET: u64 = 1000;
+
+/// The narrowest halo [`Plan::fit_halos`] gives a tile, as a share of the plan's: six halvings.
+const MIN_HALO_SHARE: f64 = 1.0 / 64.0;
+
+/// Bisection steps of [`Plan::fit_halos`] (the halo to 2⁻¹⁶ of the plan's).
+const FIT_STEPS: usize = 16;
 
 impl Plan {
     /// The most points one tile's first load (owned plus halo copies) holds, estimated from the
     /// sample (`weight` points per sample point).
     fn largest_load(&self, sample: &[DVec3], weight: f64) -> f64 {
+        self.loads(sample).into_iter().max().unwrap_or(0) as f64 * weight
+    }
+
+    /// Sample points in each tile's first load.
+    fn loads(&self, sample: &[DVec3]) -> Vec<u64> {
         let mut counts = vec![0u64; self.tiles.len()];
+        let mut near = Vec::new();
+        for &p in sample {
+            near.clear();
+            self.near_tiles(p, &mut near);
+            for &t in &near {
+                counts[t] += 1;
+            }
+        }
+        counts
+    }
+
+    /// Narrows the halo of every tile whose first load the sample predicts over `accept` points
+    /// to the widest that fits (not below [`MIN_HALO_SHARE`] of the plan's), and returns the
+    /// largest and the summed first loads left. A tile next to a dense cluster, or a dense tile in a cloud whose typical
+    /// spacing is wide, then loads what the budget allows instead of making every tile smaller
+    /// (issue 16: a 30 M-point cluttered scene went to 747 tiles and 588 halo growths that way).
+    /// The owned points whose lists the narrower halo does not hold are redone by
+    /// [`crate::tiling::growth`] within the same budget; the halo decides only what is loaded,
+    /// never a value.
+    fn fit_halos(&mut self, sample: &[DVec3], weight: f64, accept: f64) -> (f64, f64) {
+        let mut counts = self.loads(sample);
+        let bound = if weight > 0.0 {
+            accept / weight
+        } else {
+            f64::INFINITY
+        };
+        let over: Vec<usize> = (0..counts.len())
+            .filter(|&t| counts[t] as f64 > bound)
+            .collect();
+        let mut slot = vec![usize::MAX; self.tiles.len()];
+        for (i, &t) in over.iter().enumerate() {
+            slot[t] = i;
+        }
+        let mut held: Vec<Vec<DVec3>> = vec![Vec::new(); over.len()];
         let mut near = Vec::new();
         for &p in sample {
             near.clear();
             self.near(p, self.halo, &mut near);
             for &t in &near {
-                counts[t] += 1;
+                if slot[t] != usize::MAX {
+                    held[slot[t]].push(p);
+                }
             }
         }
-        counts.into_iter().max().unwrap_or(0) as f64 * weight
+        for (&t, held) in over.iter().zip(&held) {
+            let count = |h: f64| held.iter().filter(|&&p| self.in_region(t, h, p)).count() as u64;
+            let mut lo = self.halo * MIN_HALO_SHARE;
+            let mut load = count(lo);
+            if load as f64 <= bound {
+                let mut hi = self.halo;
+                for _ in 0..FIT_STEPS {
+                    let mid = 0.5 * (lo + hi);
+                    let at = count(mid);
+                    if at as f64 <= bound {
+                        (lo, load) = (mid, at);
+                    } else {
+                        hi = mid;
+                    }
+                }
+            }
+            self.tiles[t].halo = lo;
+            counts[t] = load;
+        }
+        let largest = counts.iter().max().copied().unwrap_or(0);
+        let total: u64 = counts.iter().sum();
+        (largest as f64 * weight, total as f64 * weight)
     }
 }
 
@@ -408,6 +545,7 @@ fn split(
             id: tiles.len(),
             core: bx,
             estimate: estimate.round() as u64,
+            halo: 0.0,
         });
         return at;
     }
@@ -560,6 +698,11 @@ mod tests {
     /// than the halo: whatever the tile size, a tile near the cluster loads it whole. The
     /// planner's sample holds every point, so its load estimates are exact.
     fn plane_with_cluster() -> (Planner, Vec<DVec3>) {
+        plane_with_cluster_of(1e-6)
+    }
+
+    /// As [`plane_with_cluster`], the cluster's points `step` apart along a diagonal.
+    fn plane_with_cluster_of(step: f64) -> (Planner, Vec<DVec3>) {
         let mut pts = Vec::new();
         for i in 0..20_000u64 {
             let x = (crate::points::sample_key(i) % 100_000) as f64 * 0.01;
@@ -567,7 +710,7 @@ mod tests {
             pts.push(DVec3::new(x, y, 0.0));
         }
         for i in 20_000..25_000u64 {
-            let d = (crate::points::sample_key(i) % 1000) as f64 * 1e-6;
+            let d = (crate::points::sample_key(i) % 1000) as f64 * step;
             pts.push(DVec3::new(500.0 + d, 500.0 - d, d));
         }
         let mut p = Planner::new(1 << 16);
@@ -580,7 +723,7 @@ mod tests {
     #[test]
     fn issue16_shrinking_stops_where_the_halo_holds_the_load() {
         let (p, pts) = plane_with_cluster();
-        let floor = p.finish_within(MIN_TARGET, 1, 16, 2).unwrap();
+        let floor = p.finish(MIN_TARGET, 16, 2).unwrap();
         let f = floor.largest_load(&pts, 1.0);
         assert!(f > 5_000.0, "the cluster loads whole: {f}");
         // Over the budget even at the smallest tiles: the first plan is kept (the partition's
@@ -612,6 +755,51 @@ mod tests {
         }
         let plan = plain.finish_within(20_000, 3_000, 16, 2).unwrap();
         assert!(plan.tiles.len() >= 8, "{}", plan.tiles.len());
+    }
+
+    #[test]
+    fn issue16_a_dense_cluster_narrows_the_halos_near_it_not_the_tiles() {
+        // 20 000 plane points and a 5 000-point cluster far smaller than the halo (but wider
+        // than the narrowest halo). At a budget the plane's tiles fit with their halo but the
+        // tiles around the cluster do not, only the halos near the cluster narrow: the tiles
+        // stay those of the unbounded plan.
+        let step = 0.01;
+        let (p, pts) = plane_with_cluster_of(step);
+        let free = p.finish(4_000, 16, 2).unwrap();
+        let f = free.largest_load(&pts, 1.0);
+        assert!(f > 5_000.0, "the cluster loads whole: {f}");
+        assert!(1000.0 * step < free.halo && 1000.0 * step > free.halo * MIN_HALO_SHARE);
+        let max_load = 7_000;
+        let plan = plane_with_cluster_of(step)
+            .0
+            .finish_within(4_000, max_load, 16, 2)
+            .unwrap();
+        assert_eq!(plan.tiles.len(), free.tiles.len());
+        let loads = plan.loads(&pts);
+        let full = free.loads(&pts);
+        for (t, tile) in plan.tiles.iter().enumerate() {
+            assert!(
+                loads[t] as f64 <= 0.9 * max_load as f64,
+                "tile {t}: {}",
+                loads[t]
+            );
+            if full[t] as f64 <= 0.9 * max_load as f64 {
+                assert_eq!(tile.halo, plan.halo, "tile {t} fitted: its halo stays");
+            } else {
+                assert!(tile.halo < plan.halo && tile.halo >= plan.halo * MIN_HALO_SHARE);
+            }
+        }
+        assert!(plan.tiles.iter().any(|t| t.halo < plan.halo));
+        // `near_tiles` is what the partition copies by: the fitted loads to the point.
+        let mut near = Vec::new();
+        for (i, &q) in pts.iter().enumerate().step_by(97) {
+            near.clear();
+            plan.near_tiles(q, &mut near);
+            for t in 0..plan.tiles.len() {
+                let inside = plan.in_region(t, plan.tile_halo(t), q);
+                assert_eq!(near.contains(&t), inside, "point {i}, tile {t}");
+            }
+        }
     }
 
     #[test]

@@ -75,7 +75,7 @@ pub fn partition(
     for t in 0..plan.tiles.len() {
         let points = spilled_points(work.path(), t).map_err(tiling_err)?;
         budget
-            .check_points(t, points, plan.halo)
+            .check_points(t, points, plan.tile_halo(t))
             .map_err(tiling_err)?;
     }
     Ok(partition)
@@ -113,7 +113,7 @@ fn spill(
             spill.push(owner, &point).map_err(tiling_err)?;
             point.owned = false;
             near.clear();
-            plan.near(p, plan.halo, &mut near);
+            plan.near_tiles(p, &mut near);
             for &t in near.iter().filter(|&&t| t != owner) {
                 spill.push(t, &point).map_err(tiling_err)?;
             }
