@@ -145,6 +145,10 @@ pub struct KnnIndex {
     indexed: usize,
     /// Tie key of each point (its global index); `None` means the local index.
     ties: Option<Vec<u64>>,
+    /// The grid's cell size for one k, estimated on first use ([`KnnIndex::cell_size`]): the
+    /// rounds of [`KnnIndex::knn_near`] ask it again on the same points, and in a tiled run with
+    /// many halo-growth groups the estimate was a quarter of the CPU (issue 16).
+    cell: OnceLock<(usize, f64)>,
 }
 
 impl KnnIndex {
@@ -165,6 +169,7 @@ impl KnnIndex {
         let indexed = local.iter().filter(|p| indexable(**p)).count();
         Ok(KnnIndex {
             tree: OnceLock::new(),
+            cell: OnceLock::new(),
             local,
             origin,
             indexed,
@@ -354,6 +359,12 @@ impl KnnIndex {
     /// chooses). Only speed depends on it: the grid pass is exact for any cell size, and refines
     /// dense cells itself.
     fn cell_size(&self, k: usize) -> f64 {
+        let &(at, cell) = self.cell.get_or_init(|| (k, self.estimate_cell(k)));
+        if at == k { cell } else { self.estimate_cell(k) }
+    }
+
+    /// [`KnnIndex::cell_size`], computed.
+    fn estimate_cell(&self, k: usize) -> f64 {
         let finite: Vec<DVec3> = self
             .local
             .iter()
