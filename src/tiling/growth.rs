@@ -37,9 +37,10 @@ use crate::points::Aabb;
 /// Largest halo tried, relative to the bounding-box diagonal, before giving up.
 const MAX_HALO_FRACTION: f64 = 1.0;
 
-/// Most growth rounds of one tile, whatever the plan says: the initial halo is at least 10⁻³ of
-/// the diagonal, so 2 × the diagonal is reached in 11; this only bounds the loop if the plan's
-/// numbers are degenerate.
+/// Most growth rounds of one tile, whatever the plan says: the halo doubles up to
+/// [`plan::sufficient_halo`], a few times the plan's halo, so even a tile narrowed to 1/64 of it
+/// ([`Plan::tile_halo`]) gets there in about 8 rounds; without an isolation radius it doubles
+/// towards twice the diagonal. This only bounds the loop if the plan's numbers are degenerate.
 const MAX_HALO_GROWTHS: u32 = 64;
 
 /// Spill records read per point the kernel runs on, in cost: reading a 32-byte record costs

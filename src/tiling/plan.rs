@@ -276,6 +276,10 @@ impl Planner {
     /// its summed loads more than [`SHRINK_COST`] times A's (a dense cluster inside the halo
     /// of every small tile near it).
     ///
+    /// # Errors
+    /// [`TilingError::Cancelled`] once the flag installed with
+    /// [`crate::neighbours::with_cancel`] is set (checked before plan A and in every round of
+    /// plan B's shrink).
     pub fn finish_within(
         self,
         target: u64,
@@ -455,9 +459,10 @@ impl Plan {
 
     /// Narrows the halo of every tile whose first load the sample predicts over `accept` points
     /// to the widest that fits (not below [`MIN_HALO_SHARE`] of the plan's), and returns the
-    /// largest and the summed first loads left. A tile next to a dense cluster, or a dense tile in a cloud whose typical
-    /// spacing is wide, then loads what the budget allows instead of making every tile smaller
-    /// (issue 16: a 30 M-point cluttered scene went to 747 tiles and 588 halo growths that way).
+    /// largest and the summed first loads left. A tile next to a dense cluster, or a dense tile
+    /// in a cloud whose typical spacing is wide, then loads what the budget allows instead of
+    /// making every tile smaller (issue 16: a 30 M-point cluttered scene went to 747 tiles and
+    /// 588 halo growths that way).
     /// The owned points whose lists the narrower halo does not hold are redone by
     /// [`crate::tiling::growth`] within the same budget; the halo decides only what is loaded,
     /// never a value.
