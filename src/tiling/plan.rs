@@ -267,13 +267,13 @@ impl Planner {
     /// halo, with a tenth of margin for the sample's estimate). The caller checks the exact loads
     /// after the partition. Two plans are weighed (issue 16):
     /// - **A**, the tiles of `target` with the halo of each tile that would load too much
-    ///   narrowed to what fits ([`Plan::fit_halos`]); owned points near a narrowed face are
+    ///   narrowed to what fits (`Plan::fit_halos`); owned points near a narrowed face are
     ///   redone by halo growth;
     /// - **B**, smaller tiles with the whole halo, down to where shrinking stops removing load
-    ///   ([`shrink`]), then narrowed the same way.
+    ///   (`shrink`), then narrowed the same way.
     ///
     /// A is returned when nothing had to be narrowed; otherwise B unless its halo copies make
-    /// its summed loads more than [`SHRINK_COST`] times A's (a dense cluster inside the halo
+    /// its summed loads more than `SHRINK_COST` times A's (a dense cluster inside the halo
     /// of every small tile near it).
     ///
     /// # Errors
