@@ -11,7 +11,8 @@
 //! only needs exact results for the core; the hops of a surface reach a thin shell of that halo.
 //! Every indexed point stays a candidate, so a listed point's list is the one
 //! [`KnnIndex::knn_all`] gives it, bit for bit. Once the listed points are most of the cloud, one
-//! last round lists all the rest (a round costs a grid pass, whatever its share).
+//! last round lists all the rest (a round costs a pass over the grid's cells, whatever its
+//! share; the grid's first level is built once for all rounds).
 
 use super::{KnnIndex, Neighbourhoods, NeighboursError};
 
@@ -39,6 +40,9 @@ impl KnnIndex {
         let mut entries: Vec<(u32, u32, f64)> = Vec::new();
         let mut slot = vec![u32::MAX; n];
         let mut count = 0usize;
+        // One first grid level for every round: each round asks a few more lists of the same
+        // points, and rebuilding the level (a sort of the whole run) was most of their cost.
+        let base = self.base_level(k)?;
         for round in 0..=hops {
             let all = count as f64 >= ALL_SHARE * n as f64;
             if all {
@@ -46,7 +50,7 @@ impl KnnIndex {
                     *a = !*l;
                 }
             }
-            let (nb, radii, _) = self.knn_asked(k, Some(&ask))?;
+            let (nb, radii, _) = self.knn_from(&base, k, Some(&ask))?;
             let mut next = vec![false; n];
             for i in (0..n).filter(|&i| ask[i]) {
                 listed[i] = true;

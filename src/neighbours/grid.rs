@@ -468,20 +468,33 @@ impl Pass<'_> {
     }
 }
 
-/// Runs the grid levels over the points `ids` of `local` (indices into it), starting with cells
-/// of side `cell`. Every point of `ids` that `asked` selects (all of them when `None`) appears in
+/// Level 0 of [`all_knn`]: every indexed point sorted into cells of one size. Built once by the
+/// caller, it serves every pass over the same points with the same k: the rounds of
+/// [`super::KnnIndex::knn_near`] each ask for a few more lists, and rebuilding it (a sort of
+/// the whole run) for each was most of a halo-growth group's k-NN time (issue 16).
+pub(crate) struct BaseLevel(Level);
+
+impl BaseLevel {
+    /// Sorts `ids` (indices into `local`) into cells of side `cell` (see [`Level::build`]).
+    pub(crate) fn build(local: &[[f64; 3]], ids: Vec<u32>, cell: f64) -> BaseLevel {
+        BaseLevel(Level::build(local, ids, cell))
+    }
+}
+
+/// Runs the grid levels over the points of `base` (indices into `local`), starting with `base`
+/// itself. Every point of `base` that `asked` selects (all of them when `None`) appears in
 /// exactly one returned [`CellAnswers`], answered or marked for the tree (NaN); every point of
-/// `ids` is a candidate. A cell without asked points costs nothing beyond its place in the grid.
+/// `base` is a candidate. A cell without asked points costs nothing beyond its place in the grid.
+/// `base` must have been built over `local`.
 ///
 /// # Errors
 /// [`Cancelled`] once `cancel` is set (checked per cell and per query).
 pub(crate) fn all_knn(
     local: &[[f64; 3]],
-    ids: Vec<u32>,
+    base: &BaseLevel,
     asked: Option<&[bool]>,
     ties: Option<&[u64]>,
     k: usize,
-    cell: f64,
     cancel: Option<&AtomicBool>,
 ) -> Result<(Vec<CellAnswers>, Work), Cancelled> {
     let packed = match ties {
@@ -495,6 +508,7 @@ pub(crate) fn all_knn(
         cancel,
         packed,
     };
+    let ids = &base.0.sorted;
     let mut queries: Option<Bits> = asked.map(|a| {
         let mut b = Bits::new(local.len());
         for &i in ids.iter().filter(|&&i| a[i as usize]) {
@@ -511,15 +525,21 @@ pub(crate) fn all_knn(
     };
     let mut out: Vec<CellAnswers> = Vec::new();
     let mut ancestors: Vec<Ancestor> = Vec::new();
-    // Which points are queries at the current level (`None`: all of the level's points).
-    let mut subset = ids;
-    let mut want = cell;
+    // The points of the next level (level 0 is the caller's) and its cell size.
+    let mut subset = Vec::new();
+    let mut want = 0.0;
     for depth in 0..MAX_LEVELS {
-        if subset.is_empty() {
+        if ids.is_empty() || (depth > 0 && subset.is_empty()) {
             break;
         }
         work.levels = depth as u32 + 1;
-        let level = Level::build(local, subset, want);
+        let built;
+        let level = if depth == 0 {
+            &base.0
+        } else {
+            built = Level::build(local, std::mem::take(&mut subset), want);
+            &built
+        };
         let is_query = |i: u32| queries.as_ref().is_none_or(|q| q.get(i));
         let may_defer = depth + 1 < MAX_LEVELS;
         let run_cell = |blk: &mut Block, r: usize, defer: bool| -> (CellAnswers, usize) {
@@ -647,16 +667,25 @@ fn answer_cell(
             .fold(f64::INFINITY, f64::min)
     };
     let mut out = CellAnswers::default();
-    blk.clear();
-    level.push_cells(blk, c, (0, 1), usize::MAX, pass, &mut out.work.cells);
     let dense_load = DENSE_LOAD_PER_K * k;
-    if defer && blk.ids.len() > dense_load {
+    blk.clear();
+    let limit = if defer { dense_load } else { usize::MAX };
+    if !level.push_cells(blk, c, (0, 1), limit, pass, &mut out.work.cells) {
+        // Dense: measure the load without copying the rest of the block (copying it only to
+        // measure it was a large share of a cluttered cloud's k-NN time).
+        let mut load = 0;
+        level.for_cells(c, 0, 1, &mut out.work.cells, |s, e| {
+            load += e - s;
+            true
+        });
         // A stack of coincident points that makes up much of the load cannot be split: answered
         // here, deduplicated (one block scan for the whole stack).
         let stack = b - a > dense_load / 4 && (a..b).all(|j| level.point(j) == level.point(a));
         if !stack {
-            return (out, blk.ids.len());
+            return (out, load);
         }
+        blk.clear();
+        level.push_cells(blk, c, (0, 1), usize::MAX, pass, &mut out.work.cells);
     }
     out.points.reserve(b - a);
     out.lists.reserve((b - a) * k);

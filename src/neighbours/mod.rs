@@ -429,6 +429,17 @@ impl KnnIndex {
         k: usize,
         asked: Option<&[bool]>,
     ) -> Result<(Neighbourhoods, Vec<f64>, KnnWork), NeighboursError> {
+        let base = self.base_level(k)?;
+        self.knn_from(&base, k, asked)
+    }
+
+    /// The first grid level of a pass with lists of `k` (every indexed point sorted into
+    /// cells), to share between the passes of [`KnnIndex::knn_from`].
+    ///
+    /// # Errors
+    /// [`NeighboursError::ZeroK`], [`NeighboursError::TooFewPoints`] when fewer than `k` points
+    /// are indexed.
+    pub(crate) fn base_level(&self, k: usize) -> Result<grid::BaseLevel, NeighboursError> {
         if k == 0 {
             return Err(NeighboursError::ZeroK);
         }
@@ -438,17 +449,29 @@ impl KnnIndex {
                 k,
             });
         }
+        let ids: Vec<u32> = (0..self.local.len() as u32)
+            .filter(|&i| indexable(self.local[i as usize]))
+            .collect();
+        Ok(grid::BaseLevel::build(&self.local, ids, self.cell_size(k)))
+    }
+
+    /// [`KnnIndex::knn_asked`] from a first level `base` that [`KnnIndex::base_level`] built for
+    /// this index and `k`.
+    ///
+    /// # Errors
+    /// As [`KnnIndex::knn_all`].
+    pub(crate) fn knn_from(
+        &self,
+        base: &grid::BaseLevel,
+        k: usize,
+        asked: Option<&[bool]>,
+    ) -> Result<(Neighbourhoods, Vec<f64>, KnnWork), NeighboursError> {
         let flag = cancel::current();
         let cancel = flag.as_deref();
         let stop = || cancel.is_some_and(|c| c.load(Ordering::Relaxed));
         let n = self.local.len();
-        let cell = self.cell_size(k);
-        let ids: Vec<u32> = (0..n as u32)
-            .filter(|&i| indexable(self.local[i as usize]))
-            .collect();
-        let (cells, mut work) =
-            grid::all_knn(&self.local, ids, asked, self.ties(), k, cell, cancel)
-                .map_err(|_| NeighboursError::Cancelled)?;
+        let (cells, mut work) = grid::all_knn(&self.local, base, asked, self.ties(), k, cancel)
+            .map_err(|_| NeighboursError::Cancelled)?;
         let asked = |i: usize| asked.is_none_or(|a| a[i]);
         let mut offsets = Vec::with_capacity(n + 1);
         offsets.push(0u32);
