@@ -549,7 +549,7 @@ pub(crate) fn all_knn(
             }
             answer_cell(
                 &pass,
-                &level,
+                level,
                 &ancestors,
                 blk,
                 (a as usize, b as usize),
