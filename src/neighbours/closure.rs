@@ -152,6 +152,35 @@ mod tests {
         }
     }
 
+    /// Seeds inside the dense blob: its cells are refined into finer levels in every round, while
+    /// the first level is shared by all rounds; lists and radii stay the all-points ones.
+    #[test]
+    fn issue16_rounds_through_a_refined_blob_share_the_first_level_and_keep_the_lists() {
+        let pts = cloud();
+        let index = KnnIndex::build(&pts, DVec3::ZERO).unwrap();
+        let (all, all_r, work) = index.knn_all_counted(8).unwrap();
+        assert!(work.levels > 1, "the blob must be refined: {work:?}");
+        let seeds: Vec<bool> = (0..pts.len()).map(|i| i >= 3600 && i % 50 == 0).collect();
+        for hops in 0..4 {
+            let (nb, radii, listed) = index.knn_near(8, &seeds, hops).unwrap();
+            let mut want = seeds.clone();
+            for _ in 0..hops {
+                let mut next = want.clone();
+                for i in (0..pts.len()).filter(|&i| want[i]) {
+                    for &u in all.get(i) {
+                        next[u as usize] = true;
+                    }
+                }
+                want = next;
+            }
+            assert_eq!(listed, want, "hops {hops}");
+            for i in (0..pts.len()).filter(|&i| listed[i]) {
+                assert_eq!(nb.get(i), all.get(i), "point {i}, hops {hops}");
+                assert_eq!(radii[i].to_bits(), all_r[i].to_bits());
+            }
+        }
+    }
+
     #[test]
     fn past_half_the_points_every_point_is_listed() {
         let pts = cloud();
