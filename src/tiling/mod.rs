@@ -203,17 +203,10 @@ pub fn globals_of_tile(
         None,
         |sum: &mut GlobalsPartial, part| sum.merge(&part),
         |pts, run| {
-            let denoise = |e| TilingError::Denoise { tile: t, error: e };
-            let (sum, exact) =
-                cloud::globals_partial(run, params, |i| pts[i].owned).map_err(denoise)?;
-            if pts.iter().zip(&exact).all(|(p, e)| !p.owned || *e) {
-                return Ok((sum, exact));
-            }
-            // Some owned contributions are not exact yet: sum only the exact ones (they are
-            // redone with a larger halo).
-            let (sum, _) = cloud::globals_partial(run, params, |i| pts[i].owned && exact[i])
-                .map_err(denoise)?;
-            Ok((sum, exact))
+            // Only the exact owned contributions are summed: the others are redone with a larger
+            // halo.
+            cloud::globals_partial(run, params, |i, exact| pts[i].owned && exact)
+                .map_err(|e| TilingError::Denoise { tile: t, error: e })
         },
     )?;
     Ok(sum)
