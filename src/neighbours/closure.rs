@@ -116,6 +116,21 @@ mod tests {
         pts
     }
 
+    /// The points within `hops` hops of a seed in the graph `all`.
+    fn within_hops(all: &Neighbourhoods, seeds: &[bool], hops: usize) -> Vec<bool> {
+        let mut want = seeds.to_vec();
+        for _ in 0..hops {
+            let mut next = want.clone();
+            for i in (0..want.len()).filter(|&i| want[i]) {
+                for &u in all.get(i) {
+                    next[u as usize] = true;
+                }
+            }
+            want = next;
+        }
+        want
+    }
+
     #[test]
     fn listed_points_get_the_all_points_lists_and_the_rest_only_themselves() {
         let pts = cloud();
@@ -128,16 +143,7 @@ mod tests {
         for hops in 0..4 {
             let (nb, radii, listed) = index.knn_near(8, &seeds, hops).unwrap();
             // Exactly the points within `hops` hops of a seed are listed.
-            let mut want = seeds.clone();
-            for _ in 0..hops {
-                let mut next = want.clone();
-                for i in (0..pts.len()).filter(|&i| want[i]) {
-                    for &u in all.get(i) {
-                        next[u as usize] = true;
-                    }
-                }
-                want = next;
-            }
+            let want = within_hops(&all, &seeds, hops);
             assert_eq!(listed, want, "hops {hops}");
             assert!(listed.iter().filter(|&&l| l).count() < 400, "hops {hops}");
             for i in 0..pts.len() {
@@ -163,16 +169,7 @@ mod tests {
         let seeds: Vec<bool> = (0..pts.len()).map(|i| i >= 3600 && i % 50 == 0).collect();
         for hops in 0..4 {
             let (nb, radii, listed) = index.knn_near(8, &seeds, hops).unwrap();
-            let mut want = seeds.clone();
-            for _ in 0..hops {
-                let mut next = want.clone();
-                for i in (0..pts.len()).filter(|&i| want[i]) {
-                    for &u in all.get(i) {
-                        next[u as usize] = true;
-                    }
-                }
-                want = next;
-            }
+            let want = within_hops(&all, &seeds, hops);
             assert_eq!(listed, want, "hops {hops}");
             for i in (0..pts.len()).filter(|&i| listed[i]) {
                 assert_eq!(nb.get(i), all.get(i), "point {i}, hops {hops}");
