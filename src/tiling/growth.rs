@@ -1,24 +1,28 @@
 //! Halo growth within the memory budget: a tile's owned points whose results are not yet exact
-//! are redone in small groups, each loading only the box around its own points, never the tile's
-//! whole grown halo.
+//! are redone in groups, each loading only the cells near its own points ([`Shell`]), never the
+//! tile's whole grown halo.
 //!
 //! ```text
 //!   first run: the tile's spill file (core + planned halo)
 //!        │  exact owned results are kept; the rest are *pending*
 //!        ▼
 //!   round r (halo hᵣ = 2hᵣ₋₁, capped at plan::sufficient_halo):
-//!     pending ──split──▶ groups G₁ … Gₘ  (median cuts of the longest axis, while a cut
-//!        │                               makes the loads cheaper, or one is over budget)
+//!     pending = one group G
 //!        ▼
-//!     for each G: load every point of box(G) ± hᵣ from the spill files  (≤ max_points,
-//!                 else G is cut again; one point that cannot fit is refused: TilingError::Budget)
+//!     for each G: load every point of the cells within hᵣ of G's points (Shell) from the
+//!                 spill files (≤ max_points, else G is cut in two at the median of its longest
+//!                 axis; one point that cannot fit loads the cells its dependencies reach,
+//!                 by_cells, or is refused: TilingError::PointBudget)
 //!                 run the kernel with G owned; exact results are kept, the rest stay pending
 //! ```
 //!
 //! A result the kernel proves exact equals the whole-cloud result whatever else was loaded, so
 //! results from the first run and from any group are the in-memory bytes: grouping changes only
 //! what is loaded, never a value. Every kernel run holds at most [`TileBudget::max_points`]
-//! points, so a growth costs no more memory than the first load. See docs/DECISIONS.md (issue 16).
+//! points, so a growth costs no more memory than the first load. A narrowed tile's pending
+//! points are a shell along its narrowed faces; the box of a shell is the whole tile, so loading
+//! by cells, not by box, is what keeps a round from reloading the tile. See docs/DECISIONS.md
+//! (issue 16).
 
 use std::cell::Cell;
 use std::collections::HashSet;
@@ -27,7 +31,8 @@ use std::path::Path;
 use glam::DVec3;
 
 use super::plan::{self, Plan};
-use super::spill::{TilePoint, read_spill, spilled_points};
+use super::shell::Shell;
+use super::spill::{TilePoint, read_spill};
 use super::{TileBudget, TilingError};
 use crate::denoise::DenoiseError;
 use crate::denoise::cloud::CloudRun;
@@ -42,13 +47,6 @@ const MAX_HALO_FRACTION: f64 = 1.0;
 /// ([`Plan::tile_halo`]) gets there in about 8 rounds; without an isolation radius it doubles
 /// towards twice the diagonal. This only bounds the loop if the plan's numbers are degenerate.
 const MAX_HALO_GROWTHS: u32 = 64;
-
-/// Spill records read per point the kernel runs on, in cost: reading a 32-byte record costs
-/// about 1/500 of what the kernel spends on one point (≈ 15 ns against ≈ 8 µs).
-const READS_PER_POINT: u64 = 500;
-
-/// A cut of a group is taken when the two halves cost less than this share of the whole.
-const CUT_GAIN: f64 = 0.9;
 
 /// What one kernel run gives the driver: a value over the owned points whose results are exact,
 /// and for each loaded point whether its result is exact.
@@ -112,7 +110,7 @@ pub fn with_exact_halo<V: Default>(
         // Isolated points may have fewer than k points within reach; the cloud has more.
         pts.iter().filter(owned).map(|p| (p.index, p.p)).collect()
     } else if pts.iter().any(|p| p.owned) {
-        let (v, exact) = run_kernel(plan, budget, &pts, plan.region(t, first), &mut f)?;
+        let (v, exact) = run_kernel(plan, budget, &pts, plan.region(t, first), None, &mut f)?;
         merge(&mut value, v);
         pts.iter()
             .zip(&exact)
@@ -130,7 +128,6 @@ pub fn with_exact_halo<V: Default>(
     let mut halo = first;
     // Whether every pending point is pending only because too few points were loaded for it.
     let mut only_few = first_few;
-    let mut sizes = SpillSizes::new(plan.tiles.len());
     while !pending.is_empty() {
         halo = match sufficient {
             Some(s) if halo < s => (halo * 2.0).min(s),
@@ -148,16 +145,11 @@ pub fn with_exact_halo<V: Default>(
         let mut stack = vec![std::mem::take(&mut pending)];
         while let Some(mut group) = stack.pop() {
             check_cancel()?;
-            if let Some((a, b)) = cut(plan, budget, &mut sizes, &mut group, halo, dir)? {
-                stack.push(b);
-                stack.push(a);
-                continue;
-            }
-            let bx = grown(&group, halo);
-            let loaded = match load_box(dir, plan, &bx, &group, budget.max_points)? {
+            let shell = Shell::around(plan.origin, plan.bounds, group.iter().map(|g| g.1), halo);
+            let loaded = match load_shell(dir, plan, &shell, &group, budget.max_points)? {
                 Ok(loaded) => loaded,
                 Err(found) if group.len() == 1 => {
-                    // The box is too large: load only the cells its dependencies reach.
+                    // The shell is too large: load only the cells its dependencies reach.
                     let by = by_cells(dir, plan, budget, t, &group, (hops, min_points), &mut f)?;
                     let Some((v, still, n)) = by else {
                         return Err(TilingError::PointBudget {
@@ -189,7 +181,9 @@ pub fn with_exact_halo<V: Default>(
                 next.extend(group);
                 continue;
             }
-            let (v, exact) = run_kernel(plan, budget, &loaded, plan.region_of(&bx), &mut f)?;
+            let (v, exact) =
+                run_kernel(plan, budget, &loaded, Aabb::empty(), Some(&shell), &mut f)?;
+            drop(shell);
             merge(&mut value, v);
             let before = next.len();
             next.extend(
@@ -327,7 +321,7 @@ fn by_cells<V>(
             continue;
         }
         drop((lists, radii, loaded));
-        let (v, exact) = run_kernel(plan, budget, &pts, Aabb::empty(), f)?;
+        let (v, exact) = run_kernel(plan, budget, &pts, Aabb::empty(), None, f)?;
         let still = pts
             .iter()
             .zip(&exact)
@@ -389,12 +383,14 @@ fn check_cancel() -> Result<(), TilingError> {
     }
 }
 
-/// Runs `f` on `pts` with `region` the box holding every point of the cloud inside it.
+/// Runs `f` on `pts` with `region` the box holding every point of the cloud inside it, and
+/// `shell`, when given, the cells holding every point of the cloud in them.
 fn run_kernel<V>(
     plan: &Plan,
     budget: &TileBudget,
     pts: &[TilePoint],
     region: Aabb,
+    shell: Option<&Shell>,
     f: &mut impl FnMut(&[TilePoint], &CloudRun) -> Result<RunOutput<V>, TilingError>,
 ) -> Result<RunOutput<V>, TilingError> {
     let occupancy = budget.occupancy;
@@ -402,16 +398,18 @@ fn run_kernel<V>(
     let ties: Vec<u64> = pts.iter().map(|p| p.index).collect();
     let owned: Vec<bool> = pts.iter().map(|p| p.owned).collect();
     let held: Vec<bool> = pts.iter().map(|p| p.held).collect();
-    // Balls crossing the region are complete when the cells they touch hold nothing more.
+    // Balls crossing the region are complete when the shell's cells hold them, or when the
+    // occupancy cells they touch hold nothing more.
     let loaded = std::sync::OnceLock::new();
     let complete = |p: DVec3, r2: f64| {
-        occupancy.is_some_and(|o| {
-            o.complete(
-                loaded.get_or_init(|| o.loaded(positions.iter().copied())),
-                p,
-                r2,
-            )
-        })
+        shell.is_some_and(|s| s.complete(p, r2))
+            || occupancy.is_some_and(|o| {
+                o.complete(
+                    loaded.get_or_init(|| o.loaded(positions.iter().copied())),
+                    p,
+                    r2,
+                )
+            })
     };
     let run = CloudRun {
         positions: &positions,
@@ -420,7 +418,8 @@ fn run_kernel<V>(
         region: Some(region),
         isolation: plan.isolation,
         short_lists: plan.short_lists,
-        complete: occupancy.map(|_| &complete as &(dyn Fn(DVec3, f64) -> bool + Sync)),
+        complete: (occupancy.is_some() || shell.is_some())
+            .then_some(&complete as &(dyn Fn(DVec3, f64) -> bool + Sync)),
         wanted: Some(&owned),
         held: held.iter().any(|&h| h).then_some(held.as_slice()),
     };
@@ -457,24 +456,6 @@ fn halves(group: &mut Vec<Pending>) -> (Vec<Pending>, Vec<Pending>) {
     (std::mem::take(group), right)
 }
 
-/// The records of each tile's spill file, read on first use.
-struct SpillSizes(Vec<Option<u64>>);
-
-impl SpillSizes {
-    fn new(tiles: usize) -> SpillSizes {
-        SpillSizes(vec![None; tiles])
-    }
-
-    fn get(&mut self, dir: &Path, t: usize) -> Result<u64, TilingError> {
-        if let Some(n) = self.0[t] {
-            return Ok(n);
-        }
-        let n = spilled_points(dir, t)?;
-        self.0[t] = Some(n);
-        Ok(n)
-    }
-}
-
 /// Tiles whose core touches `bx` (their owned records are the points in it).
 fn touching(plan: &Plan, bx: &Aabb) -> impl Iterator<Item = usize> {
     plan.tiles
@@ -485,69 +466,13 @@ fn touching(plan: &Plan, bx: &Aabb) -> impl Iterator<Item = usize> {
         .map(|tile| tile.id)
 }
 
-/// The cost of running `group` at `halo` in kernel-point units (the grid's bound on the points
-/// loaded, plus the spill records read), and that bound; `None` without a grid.
-fn cost(
-    plan: &Plan,
-    budget: &TileBudget,
-    sizes: &mut SpillSizes,
-    group: &[Pending],
-    halo: f64,
-    dir: &Path,
-) -> Result<Option<(f64, u64)>, TilingError> {
-    let Some(o) = budget.occupancy else {
-        return Ok(None);
-    };
-    let bx = grown(group, halo);
-    let points = o.points_in(&bx);
-    let mut reads = 0;
-    for t in touching(plan, &bx) {
-        reads += sizes.get(dir, t)?;
-    }
-    Ok(Some((
-        points as f64 + reads as f64 / READS_PER_POINT as f64,
-        points,
-    )))
-}
-
-/// A group cut in two.
-type Halves = (Vec<Pending>, Vec<Pending>);
-
-/// Cuts `group` in two when the halves are cheaper to run than the whole, or when the grid says
-/// the whole cannot fit the budget; `None` keeps it whole.
-fn cut(
-    plan: &Plan,
-    budget: &TileBudget,
-    sizes: &mut SpillSizes,
-    group: &mut Vec<Pending>,
-    halo: f64,
-    dir: &Path,
-) -> Result<Option<Halves>, TilingError> {
-    if group.len() < 2 {
-        return Ok(None);
-    }
-    let Some((whole, bound)) = cost(plan, budget, sizes, group, halo, dir)? else {
-        return Ok(None);
-    };
-    let (a, b) = halves(group);
-    let over = budget.max_points.is_some_and(|m| bound > m);
-    let ca = cost(plan, budget, sizes, &a, halo, dir)?.map_or(0.0, |c| c.0);
-    let cb = cost(plan, budget, sizes, &b, halo, dir)?.map_or(0.0, |c| c.0);
-    if over || ca + cb < CUT_GAIN * whole {
-        return Ok(Some((a, b)));
-    }
-    group.extend(a);
-    group.extend(b);
-    Ok(None)
-}
-
-/// Every point of the cloud inside `bx` (from the owned records of the tiles it touches), the
-/// points of `group` marked owned; `Err(found)` when there are more than `max` (`found` of them
-/// were seen before the read stopped).
-fn load_box(
+/// Every point of the cloud in `shell`'s cells (from the owned records of the tiles its span
+/// touches), the points of `group` marked owned; `Err(found)` when there are more than `max`
+/// (`found` of them were seen before the read stopped).
+fn load_shell(
     dir: &Path,
     plan: &Plan,
-    bx: &Aabb,
+    shell: &Shell,
     group: &[Pending],
     max: Option<u64>,
 ) -> Result<Result<Vec<TilePoint>, u64>, TilingError> {
@@ -556,13 +481,12 @@ fn load_box(
     let max = max.unwrap_or(u64::MAX);
     let count = Cell::new(0u64);
     let mut pts = Vec::new();
-    let inside = |p: DVec3| (0..3).all(|a| p[a] >= bx.min[a] && p[a] <= bx.max[a]);
-    for other in touching(plan, bx) {
+    for other in touching(plan, &shell.span()) {
         read_spill(
             dir,
             other,
             |_, p, is_halo| {
-                if is_halo || !inside(p) {
+                if is_halo || !shell.contains(p) {
                     return false;
                 }
                 count.set(count.get() + 1);

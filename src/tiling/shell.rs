@@ -1,0 +1,229 @@
+//! The fine cells within a halo of a growth group's points: what a group loads, and the proof
+//! that a k-NN ball holds nothing more than was loaded.
+//!
+//! A tile with a narrowed halo leaves the owned points near its narrowed faces pending, a shell
+//! along those faces whose bounding box is the whole tile. Loading the box reloads the tile for
+//! every round; loading the cells near the pending points loads the shell.
+//!
+//! ```text
+//!   cell edge c = halo / DILATION
+//!   loaded cells = every cell within DILATION cells (L∞) of a group point's cell
+//!                ⊇ the cube of half-side `halo` around each group point
+//!   a ball is complete when every cell its bounding box (clamped to the cloud's bounds) touches
+//!   is loaded
+//! ```
+//!
+//! Which cells are loaded decides only which results the kernel can prove exact, never a value,
+//! so the bytes are those of the in-memory run whatever the cells (docs/DECISIONS.md, issue 16).
+
+use glam::DVec3;
+use rustc_hash::FxHashSet;
+
+use crate::points::Aabb;
+
+/// Cells per halo: a group point's cell and `DILATION` cells on every side cover the cube of
+/// half-side `halo` around it, and at most `halo × (1 + 1/DILATION)` past it.
+const DILATION: i64 = 2;
+
+/// Most cells a shell keeps (about 7 MB of keys): past it, the cells grow (one per halo, then
+/// doubling), so the shell is coarser but still covers the halo.
+const MAX_CELLS: usize = 1 << 18;
+
+/// Most cells a ball's bounding box may touch and still be proven.
+const MAX_VISITS: i64 = 4096;
+
+/// Cells in the cube of `dilation` cells around one.
+fn cube(dilation: i64) -> usize {
+    let side = (2 * dilation + 1) as usize;
+    side * side * side
+}
+
+/// The cells loaded for one group at one halo.
+pub struct Shell {
+    origin: DVec3,
+    cell: f64,
+    bounds: Aabb,
+    cells: FxHashSet<[i64; 3]>,
+    span: Aabb,
+}
+
+impl Shell {
+    /// The cells within `halo` (L∞, rounded outward to whole cells) of the points in `group`,
+    /// keyed from `origin`, for a cloud whose points all lie in the closed box `bounds`.
+    pub fn around(
+        origin: DVec3,
+        bounds: Aabb,
+        group: impl Iterator<Item = DVec3> + Clone,
+        halo: f64,
+    ) -> Shell {
+        let mut shell = Shell {
+            origin,
+            cell: halo / DILATION as f64,
+            bounds,
+            cells: FxHashSet::default(),
+            span: Aabb::empty(),
+        };
+        let mut seeds = shell.seeds(group.clone());
+        let mut dilation = DILATION;
+        while seeds.len().saturating_mul(cube(dilation)) > MAX_CELLS && seeds.len() > 1 {
+            if dilation > 1 {
+                dilation = 1;
+                shell.cell = halo;
+            } else {
+                shell.cell *= 2.0;
+            }
+            seeds = shell.seeds(group.clone());
+        }
+        for s in seeds {
+            for x in -dilation..=dilation {
+                for y in -dilation..=dilation {
+                    for z in -dilation..=dilation {
+                        shell.cells.insert([s[0] + x, s[1] + y, s[2] + z]);
+                    }
+                }
+            }
+        }
+        for &c in &shell.cells {
+            shell.span.union(&shell.cell_box(c));
+        }
+        shell
+    }
+
+    /// The distinct cells holding the points of `group`.
+    fn seeds(&self, group: impl Iterator<Item = DVec3>) -> FxHashSet<[i64; 3]> {
+        group.map(|p| self.key(p)).collect()
+    }
+
+    /// The cell of `p` (monotone in each coordinate; saturating casts: positions are finite and
+    /// within ±1e12 of the origin, and the cell is positive).
+    fn key(&self, p: DVec3) -> [i64; 3] {
+        let c = ((p - self.origin) / self.cell).floor();
+        [c.x as i64, c.y as i64, c.z as i64]
+    }
+
+    /// The closed box of cell `key`, padded so it holds every point keyed to the cell.
+    fn cell_box(&self, key: [i64; 3]) -> Aabb {
+        let min = self.origin + DVec3::new(key[0] as f64, key[1] as f64, key[2] as f64) * self.cell;
+        let pad = DVec3::splat(self.cell * 1e-9 + (min.abs().max_element() + self.cell) * 1e-15);
+        Aabb {
+            min: min - pad,
+            max: min + DVec3::splat(self.cell) + pad,
+        }
+    }
+
+    /// A box holding every loaded cell (what decides which spill files are read).
+    pub fn span(&self) -> Aabb {
+        self.span
+    }
+
+    /// True when `p` lies in a loaded cell.
+    pub fn contains(&self, p: DVec3) -> bool {
+        self.cells.contains(&self.key(p))
+    }
+
+    /// True when every point of the cloud in the ball (`p`, √`r2`) lies in a loaded cell.
+    pub fn complete(&self, p: DVec3, r2: f64) -> bool {
+        // The margins cover the rounding of the squared distances, as `cloud::inside` does.
+        let r = r2.max(0.0).sqrt() * (1.0 + 1e-9) + (p.abs().max_element() + 1.0) * 1e-15;
+        if !r.is_finite() {
+            return false;
+        }
+        // Every point lies in the closed bounds, so the ball's part outside them holds none.
+        let lo = (p - DVec3::splat(r)).max(self.bounds.min);
+        let hi = (p + DVec3::splat(r)).min(self.bounds.max);
+        if (0..3).any(|a| lo[a] > hi[a]) {
+            return true;
+        }
+        let (lo, hi) = (self.key(lo), self.key(hi));
+        let span = |a: usize| hi[a].saturating_sub(lo[a]).saturating_add(1);
+        if span(0).saturating_mul(span(1)).saturating_mul(span(2)) > MAX_VISITS {
+            return false;
+        }
+        (lo[0]..=hi[0]).all(|x| {
+            (lo[1]..=hi[1]).all(|y| (lo[2]..=hi[2]).all(|z| self.cells.contains(&[x, y, z])))
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn bounds() -> Aabb {
+        Aabb {
+            min: DVec3::splat(-10.0),
+            max: DVec3::splat(10.0),
+        }
+    }
+
+    #[test]
+    fn the_cells_cover_the_halo_cube_of_every_group_point() {
+        let group = [DVec3::new(0.3, -1.7, 2.05), DVec3::new(4.0, 4.0, 4.0)];
+        let halo = 0.25;
+        let shell = Shell::around(
+            DVec3::new(0.1, 0.2, 0.3),
+            bounds(),
+            group.iter().copied(),
+            halo,
+        );
+        for g in group {
+            for i in 0..=8 {
+                for j in 0..=8 {
+                    for k in 0..=8 {
+                        let d = DVec3::new(i as f64, j as f64, k as f64) / 4.0 - 1.0;
+                        assert!(shell.contains(g + d * halo), "{g} {d}");
+                    }
+                }
+            }
+            // At most halo × (1 + 1/DILATION) past the point.
+            assert!(!shell.contains(g + DVec3::X * halo * 1.51));
+            let span = shell.span();
+            assert!(span.min.cmple(g - halo).all() && span.max.cmpge(g + halo).all());
+        }
+        assert!(!shell.contains(DVec3::new(2.0, 1.0, 3.0)));
+    }
+
+    #[test]
+    fn a_group_of_many_cells_coarsens_the_cells_and_still_covers_its_halo() {
+        let group: Vec<DVec3> = (0..40_000)
+            .map(|i| {
+                let k = crate::points::sample_key(i);
+                DVec3::new((k % 1000) as f64, ((k / 1000) % 1000) as f64, 0.0) * 0.009
+            })
+            .collect();
+        let halo = 0.01;
+        let shell = Shell::around(DVec3::ZERO, bounds(), group.iter().copied(), halo);
+        assert!(shell.cells.len() <= MAX_CELLS, "{}", shell.cells.len());
+        assert!(shell.cell > halo / DILATION as f64);
+        for g in group.iter().step_by(97) {
+            for d in [DVec3::X, -DVec3::Y, DVec3::Z, DVec3::ONE, -DVec3::ONE] {
+                assert!(shell.contains(*g + d * halo));
+            }
+        }
+    }
+
+    #[test]
+    fn a_ball_is_complete_only_when_its_cells_are_loaded() {
+        let g = DVec3::new(1.0, 1.0, 1.0);
+        let shell = Shell::around(DVec3::ZERO, bounds(), std::iter::once(g), 0.5);
+        assert!(shell.complete(g, 0.49 * 0.49));
+        assert!(shell.complete(g + DVec3::X * 0.2, 0.29 * 0.29));
+        assert!(!shell.complete(g, 1.0));
+        assert!(!shell.complete(g + DVec3::X * 0.8, 0.1));
+        assert!(!shell.complete(g, f64::INFINITY));
+    }
+
+    #[test]
+    fn the_part_of_a_ball_outside_the_cloud_bounds_needs_no_cells() {
+        let corner = DVec3::splat(10.0);
+        let shell = Shell::around(DVec3::ZERO, bounds(), std::iter::once(corner), 0.5);
+        // The loaded cells end 0.75 past the corner; this ball reaches 0.75 + 0.05 past it,
+        // where no point can be.
+        let out = corner + DVec3::splat(0.35);
+        assert!(shell.complete(out, 0.45 * 0.45));
+        assert!(!shell.contains(corner + DVec3::splat(0.78)));
+        assert!(!shell.complete(corner, 0.6 * 0.6));
+        // A ball wholly outside the bounds holds nothing.
+        assert!(shell.complete(DVec3::splat(30.0), 1.0));
+    }
+}
