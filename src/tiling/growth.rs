@@ -110,7 +110,7 @@ pub fn with_exact_halo<V: Default>(
         // Isolated points may have fewer than k points within reach; the cloud has more.
         pts.iter().filter(owned).map(|p| (p.index, p.p)).collect()
     } else if pts.iter().any(|p| p.owned) {
-        let (v, exact) = run_kernel(plan, budget, &pts, plan.region(t, first), None, &mut f)?;
+        let (v, exact) = run_kernel(plan, budget, &pts, plan.first_region(t), None, &mut f)?;
         merge(&mut value, v);
         pts.iter()
             .zip(&exact)

@@ -58,10 +58,14 @@ pub struct Tile {
     /// Points the sample predicts it owns.
     pub estimate: u64,
     /// Its first load's halo: the plan's, or narrower where that would load more points than the
-    /// budget allows one run ([`Planner::finish_within`]). 0 in plans written before it existed,
-    /// read as the plan's ([`Plan::tile_halo`]).
+    /// budget allows one run ([`Planner::finish_within`]); with `faces`, the narrowest of them.
+    /// 0 in plans written before it existed, read as the plan's ([`Plan::tile_halo`]).
     #[serde(default)]
     pub halo: f64,
+    /// The halo of each face (−x, +x, −y, +y, −z, +z) where they differ: only the faces whose
+    /// halo holds too much are narrowed. `None`: every face has `halo`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub faces: Option<[f64; 6]>,
 }
 
 /// The result of planning.
@@ -115,7 +119,7 @@ impl Plan {
         if h > 0.0 { h } else { self.halo }
     }
 
-    /// Every tile whose box, grown by its own halo ([`Plan::tile_halo`]), contains `p`: the
+    /// Every tile whose box, grown by its own halos ([`Plan::face_halos`]), contains `p`: the
     /// tiles whose first load holds `p`, appended to `out`.
     pub fn near_tiles(&self, p: DVec3, out: &mut Vec<usize>) {
         let from = out.len();
@@ -123,7 +127,7 @@ impl Plan {
         let mut keep = from;
         for i in from..out.len() {
             let t = out[i];
-            if self.tile_halo(t) >= self.halo || self.in_region(t, self.tile_halo(t), p) {
+            if self.tile_halo(t) >= self.halo || self.in_first_load(t, p) {
                 out[keep] = t;
                 keep += 1;
             }
@@ -154,23 +158,26 @@ impl Plan {
         }
     }
 
-    /// The region of tile `t` grown by `halo`, with faces on the cloud's outer bounds pushed to
-    /// infinity (no point lies beyond them, so a k-NN ball crossing them is still complete).
-    pub fn region(&self, t: usize, halo: f64) -> Aabb {
+    /// The halo of each face of tile `t`'s first load (−x, +x, −y, +y, −z, +z).
+    pub fn face_halos(&self, t: usize) -> [f64; 6] {
+        self.tiles[t].faces.unwrap_or([self.tile_halo(t); 6])
+    }
+
+    /// The region of tile `t`'s first load: its box grown by its face halos, with faces on the
+    /// cloud's outer bounds pushed to infinity (no point lies beyond them, so a k-NN ball
+    /// crossing them is still complete).
+    pub fn first_region(&self, t: usize) -> Aabb {
+        let h = self.face_halos(t);
         let core = self.tiles[t].core;
-        let mut r = Aabb {
-            min: core.min - DVec3::splat(halo),
-            max: core.max + DVec3::splat(halo),
-        };
-        for a in 0..3 {
-            if core.min[a] <= self.bounds.min[a] {
-                r.min[a] = f64::NEG_INFINITY;
-            }
-            if core.max[a] >= self.bounds.max[a] {
-                r.max[a] = f64::INFINITY;
-            }
-        }
-        r
+        self.region_of(&Aabb {
+            min: core.min - DVec3::new(h[0], h[2], h[4]),
+            max: core.max + DVec3::new(h[1], h[3], h[5]),
+        })
+    }
+
+    /// True when tile `t`'s first load holds `p`: `p` lies within its box grown by its face halos.
+    pub fn in_first_load(&self, t: usize, p: DVec3) -> bool {
+        within(&self.tiles[t].core, &self.face_halos(t), p)
     }
 
     /// `bx` (a box holding every point of the cloud inside it) with faces at or beyond the cloud's
@@ -193,6 +200,11 @@ impl Plan {
         let core = self.tiles[t].core;
         (0..3).all(|a| p[a] >= core.min[a] - halo && p[a] <= core.max[a] + halo)
     }
+}
+
+/// True when `p` lies within `core` grown by `faces` (−x, +x, −y, +y, −z, +z).
+fn within(core: &Aabb, faces: &[f64; 6], p: DVec3) -> bool {
+    (0..3).all(|a| p[a] >= core.min[a] - faces[2 * a] && p[a] <= core.max[a] + faces[2 * a + 1])
 }
 
 /// Accumulates pass 1.
@@ -457,8 +469,8 @@ impl Plan {
         counts
     }
 
-    /// Narrows the halo of every tile whose first load the sample predicts over `accept` points
-    /// to the widest that fits (not below [`MIN_HALO_SHARE`] of the plan's), and returns the
+    /// Narrows the halos of every tile whose first load the sample predicts over `accept` points
+    /// ([`Plan::fit_faces`]) to the widest that fit (not below [`MIN_HALO_SHARE`] of the plan's), and returns the
     /// largest and the summed first loads left. A tile next to a dense cluster, or a dense tile
     /// in a cloud whose typical spacing is wide, then loads what the budget allows instead of
     /// making every tile smaller (issue 16: a 30 M-point cluttered scene went to 747 tiles and
@@ -492,27 +504,65 @@ impl Plan {
             }
         }
         for (&t, held) in over.iter().zip(&held) {
-            let count = |h: f64| held.iter().filter(|&&p| self.in_region(t, h, p)).count() as u64;
-            let mut lo = self.halo * MIN_HALO_SHARE;
-            let mut load = count(lo);
-            if load as f64 <= bound {
-                let mut hi = self.halo;
-                for _ in 0..FIT_STEPS {
-                    let mid = 0.5 * (lo + hi);
-                    let at = count(mid);
-                    if at as f64 <= bound {
-                        (lo, load) = (mid, at);
-                    } else {
-                        hi = mid;
-                    }
-                }
-            }
-            self.tiles[t].halo = lo;
+            let (faces, load) = self.fit_faces(t, held, bound);
+            let narrowest = faces.iter().copied().fold(f64::INFINITY, f64::min);
+            self.tiles[t].halo = narrowest;
+            self.tiles[t].faces = faces.iter().any(|&h| h != narrowest).then_some(faces);
             counts[t] = load;
         }
         let largest = counts.iter().max().copied().unwrap_or(0);
         let total: u64 = counts.iter().sum();
         (largest as f64 * weight, total as f64 * weight)
+    }
+
+    /// Face halos of tile `t` under which its first load holds at most `bound` of `held` (the
+    /// sample points within the plan's halo of it), and that load. The faces are narrowed heaviest first (by the sample points in their slab at the plan's
+    /// halo, ties by face): the heaviest alone to the widest common halo that fits, else the two
+    /// heaviest, and so on; a face whose slab holds nothing is never narrowed unless nothing else
+    /// fits, and then every face takes the narrowest halo ([`MIN_HALO_SHARE`]). A tile beside a
+    /// dense cluster keeps its whole halo on the faces away from it, so only the owned points near
+    /// the cluster's face are left to halo growth.
+    fn fit_faces(&self, t: usize, held: &[DVec3], bound: f64) -> ([f64; 6], u64) {
+        let core = self.tiles[t].core;
+        let count =
+            |faces: &[f64; 6]| held.iter().filter(|&&p| within(&core, faces, p)).count() as u64;
+        let mut slabs = [0u64; 6];
+        for &p in held {
+            for a in 0..3 {
+                slabs[2 * a] += u64::from(p[a] < core.min[a]);
+                slabs[2 * a + 1] += u64::from(p[a] > core.max[a]);
+            }
+        }
+        let mut order: Vec<usize> = (0..6).filter(|&f| slabs[f] > 0).collect();
+        order.sort_by_key(|&f| (std::cmp::Reverse(slabs[f]), f));
+        let narrowest = self.halo * MIN_HALO_SHARE;
+        for j in 1..=order.len() {
+            let at = |h: f64| {
+                let mut faces = [self.halo; 6];
+                for &f in &order[..j] {
+                    faces[f] = h;
+                }
+                faces
+            };
+            let mut lo = narrowest;
+            let mut load = count(&at(lo));
+            if load as f64 > bound {
+                continue;
+            }
+            let mut hi = self.halo;
+            for _ in 0..FIT_STEPS {
+                let mid = 0.5 * (lo + hi);
+                let got = count(&at(mid));
+                if got as f64 <= bound {
+                    (lo, load) = (mid, got);
+                } else {
+                    hi = mid;
+                }
+            }
+            return (at(lo), load);
+        }
+        let faces = [narrowest; 6];
+        (faces, count(&faces))
     }
 }
 
@@ -551,6 +601,7 @@ fn split(
             core: bx,
             estimate: estimate.round() as u64,
             halo: 0.0,
+            faces: None,
         });
         return at;
     }
@@ -795,13 +846,40 @@ mod tests {
             }
         }
         assert!(plan.tiles.iter().any(|t| t.halo < plan.halo));
+        // Only the faces towards the cluster narrow: each narrowed face has cluster points in
+        // its slab at the plan's halo, and a narrowed tile keeps the whole halo on the others.
+        let cluster = &pts[20_000..];
+        for (t, tile) in plan.tiles.iter().enumerate() {
+            let faces = plan.face_halos(t);
+            for (f, &h) in faces.iter().enumerate() {
+                if h >= plan.halo {
+                    continue;
+                }
+                let (a, up) = (f / 2, f % 2 == 1);
+                let beyond = cluster.iter().any(|q| {
+                    within(&tile.core, &[plan.halo; 6], *q)
+                        && if up {
+                            q[a] > tile.core.max[a]
+                        } else {
+                            q[a] < tile.core.min[a]
+                        }
+                });
+                assert!(
+                    beyond,
+                    "tile {t}: face {f} narrowed to {h}, no cluster beyond it"
+                );
+            }
+            if tile.halo < plan.halo {
+                assert!(tile.faces.is_some(), "tile {t}: every face narrowed");
+            }
+        }
         // `near_tiles` is what the partition copies by: the fitted loads to the point.
         let mut near = Vec::new();
         for (i, &q) in pts.iter().enumerate().step_by(97) {
             near.clear();
             plan.near_tiles(q, &mut near);
             for t in 0..plan.tiles.len() {
-                let inside = plan.in_region(t, plan.tile_halo(t), q);
+                let inside = plan.in_first_load(t, q);
                 assert_eq!(near.contains(&t), inside, "point {i}, tile {t}");
             }
         }
