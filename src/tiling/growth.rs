@@ -129,8 +129,12 @@ pub fn with_exact_halo<V: Default>(
     // Whether every pending point is pending only because too few points were loaded for it.
     let mut only_few = first_few;
     while !pending.is_empty() {
+        // A narrowed tile's first round doubles its narrow halo (cheap, and it finishes most
+        // points near the narrowed faces); later rounds start at the plan's halo, the reach the
+        // sample predicts, instead of doubling up to it through rounds that finish nothing.
+        let floor = if growth.rounds == 0 { 0.0 } else { plan.halo };
         halo = match sufficient {
-            Some(s) if halo < s => (halo * 2.0).min(s),
+            Some(s) if halo < s => (halo * 2.0).max(floor).min(s),
             // Cannot happen: at the sufficient halo every list and its members are loaded.
             Some(_) if !only_few => return Err(TilingError::HaloLimit { tile: t, halo }),
             _ => halo * 2.0,

@@ -118,7 +118,10 @@ impl Shell {
 
     /// True when `p` lies in a loaded cell.
     pub fn contains(&self, p: DVec3) -> bool {
-        self.cells.contains(&self.key(p))
+        // Most records a group reads lie outside the span: compare before hashing.
+        let span = &self.span;
+        (0..3).all(|a| p[a] >= span.min[a] && p[a] <= span.max[a])
+            && self.cells.contains(&self.key(p))
     }
 
     /// True when every point of the cloud in the ball (`p`, √`r2`) lies in a loaded cell.
