@@ -6,7 +6,8 @@
 //!   first run: the tile's spill file (core + planned halo)
 //!        │  exact owned results are kept; the rest are *pending*
 //!        ▼
-//!   round r (halo hᵣ = 2hᵣ₋₁, capped at plan::sufficient_halo):
+//!   round r (halo hᵣ = 2hᵣ₋₁, from round 2 at least the plan's halo, capped at
+//!            plan::sufficient_halo):
 //!     pending = one group G
 //!        ▼
 //!     for each G: load every point of the cells within hᵣ of G's points (Shell) from the
@@ -133,6 +134,7 @@ pub fn with_exact_halo<V: Default>(
         // points near the narrowed faces); later rounds start at the plan's halo, the reach the
         // sample predicts, instead of doubling up to it through rounds that finish nothing.
         let floor = if growth.rounds == 0 { 0.0 } else { plan.halo };
+        let before = halo;
         halo = match sufficient {
             Some(s) if halo < s => (halo * 2.0).max(floor).min(s),
             // Cannot happen: at the sufficient halo every list and its members are loaded.
@@ -153,7 +155,27 @@ pub fn with_exact_halo<V: Default>(
             let loaded = match load_shell(dir, plan, &shell, &group, budget.max_points)? {
                 Ok(loaded) => loaded,
                 Err(found) if group.len() == 1 => {
-                    // The shell is too large: load only the cells its dependencies reach.
+                    // The shell is too large. A lone point's box is smaller than its shell, and
+                    // the rounds may have skipped the halo it needs (the plan's halo is their
+                    // floor): its box at each halo from twice the last round's up to this one.
+                    let lone = lone_box(
+                        dir,
+                        plan,
+                        budget,
+                        group[0],
+                        (before, halo),
+                        min_points,
+                        &mut f,
+                    )?;
+                    if let Some((v, still, n)) = lone {
+                        merge(&mut value, v);
+                        growth.groups += 1;
+                        growth.loaded = growth.loaded.max(n);
+                        only_few &= still.is_empty();
+                        next.extend(still);
+                        continue;
+                    }
+                    // Load only the cells its dependencies reach.
                     let by = by_cells(dir, plan, budget, t, &group, (hops, min_points), &mut f)?;
                     let Some((v, still, n)) = by else {
                         return Err(TilingError::PointBudget {
@@ -351,31 +373,8 @@ fn load_cells(
     for &c in cells {
         bx.union(&o.cell_box(c));
     }
-    let mut mine: Vec<u64> = group.iter().map(|g| g.0).collect();
-    mine.sort_unstable();
-    let count = Cell::new(0u64);
-    let mut pts = Vec::new();
-    for other in touching(plan, &bx) {
-        read_spill(
-            dir,
-            other,
-            |_, p, is_halo| {
-                if is_halo || !cells.contains(&o.cell_of(p)) {
-                    return false;
-                }
-                count.set(count.get() + 1);
-                count.get() <= max
-            },
-            &mut pts,
-        )?;
-        if count.get() > max {
-            return Ok(Err(count.get()));
-        }
-    }
-    for p in &mut pts {
-        p.owned = mine.binary_search(&p.index).is_ok();
-    }
-    Ok(Ok(pts))
+    let keep = |p| cells.contains(&o.cell_of(p));
+    load_where(dir, plan, &bx, keep, group, Some(max))
 }
 
 /// [`TilingError::Cancelled`] once Ctrl-C or SIGTERM set the run's flag.
@@ -470,6 +469,84 @@ fn touching(plan: &Plan, bx: &Aabb) -> impl Iterator<Item = usize> {
         .map(|tile| tile.id)
 }
 
+/// Bisections of [`lone_box`] between a halo whose box fits and one whose box does not.
+const LONE_BISECTIONS: usize = 6;
+
+/// Runs `f` on the box of the lone pending `point` at the halos `2·from`, `4·from`, … up to
+/// `halo`, until a run proves its result exact; where a box holds more points than the budget
+/// allows, it bisects between that halo and the last that fit. Returns the value, the point when
+/// it is still pending after the box at `halo`, and the points of the last load; `None` when no
+/// box within the budget proved it and the box at `halo` does not fit.
+///
+/// # Errors
+/// Spill read failures, `f`'s errors, cancellation.
+fn lone_box<V: Default>(
+    dir: &Path,
+    plan: &Plan,
+    budget: &TileBudget,
+    point: Pending,
+    (from, halo): (f64, f64),
+    min_points: usize,
+    f: &mut impl FnMut(&[TilePoint], &CloudRun) -> Result<RunOutput<V>, TilingError>,
+) -> Result<Option<(V, Vec<Pending>, u64)>, TilingError> {
+    let group = [point];
+    // The widest halo whose box fit without proving the point, the narrowest that did not fit.
+    let (mut fit, mut over) = (from, None::<f64>);
+    let mut h = (from * 2.0).min(halo);
+    let mut bisections = 0;
+    // Doubling towards `halo`, then bisecting: bounded by both counts.
+    for _ in 0..MAX_HALO_GROWTHS as usize + LONE_BISECTIONS {
+        check_cancel()?;
+        let bx = grown(&group, h);
+        match load_box(dir, plan, &bx, &group, budget.max_points)? {
+            Err(_) => over = Some(h),
+            Ok(loaded) => {
+                let n = loaded.len() as u64;
+                let (v, still) = if loaded.len() >= min_points {
+                    let (v, exact) =
+                        run_kernel(plan, budget, &loaded, plan.region_of(&bx), None, f)?;
+                    let still: Vec<Pending> = loaded
+                        .iter()
+                        .zip(&exact)
+                        .filter(|(p, e)| p.owned && !**e)
+                        .map(|(p, _)| (p.index, p.p))
+                        .collect();
+                    (v, still)
+                } else {
+                    (V::default(), group.to_vec())
+                };
+                if still.is_empty() || (h >= halo && over.is_none()) {
+                    return Ok(Some((v, still, n)));
+                }
+                fit = h;
+            }
+        }
+        h = match over {
+            None => (h * 2.0).min(halo),
+            Some(_) if bisections >= LONE_BISECTIONS => return Ok(None),
+            Some(o) => {
+                bisections += 1;
+                0.5 * (fit + o)
+            }
+        };
+    }
+    Ok(None)
+}
+
+/// Every point of the cloud inside `bx` (from the owned records of the tiles it touches), the
+/// points of `group` marked owned; `Err(found)` when there are more than `max` (`found` of them
+/// were seen before the read stopped).
+fn load_box(
+    dir: &Path,
+    plan: &Plan,
+    bx: &Aabb,
+    group: &[Pending],
+    max: Option<u64>,
+) -> Result<Result<Vec<TilePoint>, u64>, TilingError> {
+    let inside = |p: DVec3| (0..3).all(|a| p[a] >= bx.min[a] && p[a] <= bx.max[a]);
+    load_where(dir, plan, bx, inside, group, max)
+}
+
 /// Every point of the cloud in `shell`'s cells (from the owned records of the tiles its span
 /// touches), the points of `group` marked owned; `Err(found)` when there are more than `max`
 /// (`found` of them were seen before the read stopped).
@@ -480,17 +557,31 @@ fn load_shell(
     group: &[Pending],
     max: Option<u64>,
 ) -> Result<Result<Vec<TilePoint>, u64>, TilingError> {
+    load_where(dir, plan, &shell.span(), |p| shell.contains(p), group, max)
+}
+
+/// Every point of the cloud in `span` for which `keep` holds (from the owned records of the
+/// tiles `span` touches), the points of `group` marked owned; `Err(found)` when there are more
+/// than `max`.
+fn load_where(
+    dir: &Path,
+    plan: &Plan,
+    span: &Aabb,
+    keep: impl Fn(DVec3) -> bool,
+    group: &[Pending],
+    max: Option<u64>,
+) -> Result<Result<Vec<TilePoint>, u64>, TilingError> {
     let mut mine: Vec<u64> = group.iter().map(|g| g.0).collect();
     mine.sort_unstable();
     let max = max.unwrap_or(u64::MAX);
     let count = Cell::new(0u64);
     let mut pts = Vec::new();
-    for other in touching(plan, &shell.span()) {
+    for other in touching(plan, span) {
         read_spill(
             dir,
             other,
             |_, p, is_halo| {
-                if is_halo || !shell.contains(p) {
+                if is_halo || !keep(p) {
                     return false;
                 }
                 count.set(count.get() + 1);

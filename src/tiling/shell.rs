@@ -78,7 +78,11 @@ impl Shell {
             for x in -dilation..=dilation {
                 for y in -dilation..=dilation {
                     for z in -dilation..=dilation {
-                        shell.cells.insert([s[0] + x, s[1] + y, s[2] + z]);
+                        shell.cells.insert([
+                            s[0].saturating_add(x),
+                            s[1].saturating_add(y),
+                            s[2].saturating_add(z),
+                        ]);
                     }
                 }
             }
@@ -136,6 +140,12 @@ impl Shell {
         let hi = (p + DVec3::splat(r)).min(self.bounds.max);
         if (0..3).any(|a| lo[a] > hi[a]) {
             return true;
+        }
+        // Every loaded point lies in the span as well as in a loaded cell (`contains`); a ball
+        // reaching past the span is not proven, whatever its keys (they saturate for a degenerate
+        // cell edge).
+        if (0..3).any(|a| lo[a] < self.span.min[a] || hi[a] > self.span.max[a]) {
+            return false;
         }
         let (lo, hi) = (self.key(lo), self.key(hi));
         let span = |a: usize| hi[a].saturating_sub(lo[a]).saturating_add(1);
@@ -214,6 +224,16 @@ mod tests {
         assert!(!shell.complete(g, 1.0));
         assert!(!shell.complete(g + DVec3::X * 0.8, 0.1));
         assert!(!shell.complete(g, f64::INFINITY));
+    }
+
+    #[test]
+    fn a_degenerate_halo_proves_nothing_and_does_not_panic() {
+        let g = DVec3::new(1.0, 2.0, 3.0);
+        for halo in [0.0, f64::MIN_POSITIVE, 1e-300] {
+            let shell = Shell::around(DVec3::ZERO, bounds(), std::iter::once(g), halo);
+            assert!(!shell.complete(g, 1e-6), "{halo}");
+            assert!(!shell.contains(g + DVec3::X), "{halo}");
+        }
     }
 
     #[test]
