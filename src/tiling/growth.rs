@@ -151,7 +151,8 @@ pub fn with_exact_halo<V: Default>(
         let mut stack = vec![std::mem::take(&mut pending)];
         while let Some(mut group) = stack.pop() {
             check_cancel()?;
-            let shell = Shell::around(plan.origin, plan.bounds, group.iter().map(|g| g.1), halo);
+            let points = group.iter().map(|g| g.1);
+            let shell = Shell::around(plan.origin, plan.bounds, points, halo, budget.max_points);
             let loaded = match load_shell(dir, plan, &shell, &group, budget.max_points)? {
                 Ok(loaded) => loaded,
                 Err(found) if group.len() == 1 => {

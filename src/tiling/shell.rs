@@ -29,6 +29,13 @@ const DILATION: i64 = 2;
 /// doubling), so the shell is coarser but still covers the halo.
 const MAX_CELLS: usize = 1 << 18;
 
+/// Points a kernel run may hold per cell a shell keeps: the cells are charged to the memory
+/// budget at about 4 bytes per point, against the hundreds each point costs the kernel.
+const POINTS_PER_CELL: u64 = 8;
+
+/// Fewest cells a shell may keep whatever the budget (about 128 kB).
+const MIN_CELLS: usize = 1 << 12;
+
 /// Most cells a ball's bounding box may touch and still be proven.
 const MAX_VISITS: i64 = 4096;
 
@@ -49,13 +56,20 @@ pub struct Shell {
 
 impl Shell {
     /// The cells within `halo` (L∞, rounded outward to whole cells) of the points in `group`,
-    /// keyed from `origin`, for a cloud whose points all lie in the closed box `bounds`.
+    /// keyed from `origin`, for a cloud whose points all lie in the closed box `bounds`, for
+    /// kernel runs of at most `max_points` points (which bounds the cells kept).
     pub fn around(
         origin: DVec3,
         bounds: Aabb,
         group: impl Iterator<Item = DVec3> + Clone,
         halo: f64,
+        max_points: Option<u64>,
     ) -> Shell {
+        let most = max_points.map_or(MAX_CELLS, |m| {
+            usize::try_from(m / POINTS_PER_CELL)
+                .unwrap_or(MAX_CELLS)
+                .clamp(MIN_CELLS, MAX_CELLS)
+        });
         let mut shell = Shell {
             origin,
             cell: halo / DILATION as f64,
@@ -65,7 +79,7 @@ impl Shell {
         };
         let mut seeds = shell.seeds(group.clone());
         let mut dilation = DILATION;
-        while seeds.len().saturating_mul(cube(dilation)) > MAX_CELLS && seeds.len() > 1 {
+        while seeds.len().saturating_mul(cube(dilation)) > most && seeds.len() > 1 {
             if dilation > 1 {
                 dilation = 1;
                 shell.cell = halo;
@@ -178,6 +192,7 @@ mod tests {
             bounds(),
             group.iter().copied(),
             halo,
+            None,
         );
         for g in group {
             for i in 0..=8 {
@@ -197,7 +212,7 @@ mod tests {
     }
 
     #[test]
-    fn a_group_of_many_cells_coarsens_the_cells_and_still_covers_its_halo() {
+    fn a_group_of_many_cells_coarsens_the_cells_to_the_budget_and_still_covers_its_halo() {
         let group: Vec<DVec3> = (0..40_000)
             .map(|i| {
                 let k = crate::points::sample_key(i);
@@ -205,12 +220,16 @@ mod tests {
             })
             .collect();
         let halo = 0.01;
-        let shell = Shell::around(DVec3::ZERO, bounds(), group.iter().copied(), halo);
-        assert!(shell.cells.len() <= MAX_CELLS, "{}", shell.cells.len());
-        assert!(shell.cell > halo / DILATION as f64);
-        for g in group.iter().step_by(97) {
-            for d in [DVec3::X, -DVec3::Y, DVec3::Z, DVec3::ONE, -DVec3::ONE] {
-                assert!(shell.contains(*g + d * halo));
+        // Unbounded, then charged to a budget of 80 000 points a run (10 000 cells).
+        for (max_points, most) in [(None, MAX_CELLS), (Some(80_000), 10_000)] {
+            let points = group.iter().copied();
+            let shell = Shell::around(DVec3::ZERO, bounds(), points, halo, max_points);
+            assert!(shell.cells.len() <= most, "{}", shell.cells.len());
+            assert!(shell.cell > halo / DILATION as f64);
+            for g in group.iter().step_by(97) {
+                for d in [DVec3::X, -DVec3::Y, DVec3::Z, DVec3::ONE, -DVec3::ONE] {
+                    assert!(shell.contains(*g + d * halo));
+                }
             }
         }
     }
@@ -218,7 +237,7 @@ mod tests {
     #[test]
     fn a_ball_is_complete_only_when_its_cells_are_loaded() {
         let g = DVec3::new(1.0, 1.0, 1.0);
-        let shell = Shell::around(DVec3::ZERO, bounds(), std::iter::once(g), 0.5);
+        let shell = Shell::around(DVec3::ZERO, bounds(), std::iter::once(g), 0.5, None);
         assert!(shell.complete(g, 0.49 * 0.49));
         assert!(shell.complete(g + DVec3::X * 0.2, 0.29 * 0.29));
         assert!(!shell.complete(g, 1.0));
@@ -230,7 +249,7 @@ mod tests {
     fn a_degenerate_halo_proves_nothing_and_does_not_panic() {
         let g = DVec3::new(1.0, 2.0, 3.0);
         for halo in [0.0, f64::MIN_POSITIVE, 1e-300] {
-            let shell = Shell::around(DVec3::ZERO, bounds(), std::iter::once(g), halo);
+            let shell = Shell::around(DVec3::ZERO, bounds(), std::iter::once(g), halo, None);
             assert!(!shell.complete(g, 1e-6), "{halo}");
             assert!(!shell.contains(g + DVec3::X), "{halo}");
         }
@@ -239,7 +258,7 @@ mod tests {
     #[test]
     fn the_part_of_a_ball_outside_the_cloud_bounds_needs_no_cells() {
         let corner = DVec3::splat(10.0);
-        let shell = Shell::around(DVec3::ZERO, bounds(), std::iter::once(corner), 0.5);
+        let shell = Shell::around(DVec3::ZERO, bounds(), std::iter::once(corner), 0.5, None);
         // The loaded cells end 0.75 past the corner; this ball reaches 0.75 + 0.05 past it,
         // where no point can be.
         let out = corner + DVec3::splat(0.35);
