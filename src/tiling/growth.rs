@@ -12,8 +12,9 @@
 //!        ▼
 //!     for each G: load every point of the cells within hᵣ of G's points (Shell) from the
 //!                 spill files (≤ max_points, else G is cut in two at the median of its longest
-//!                 axis; one point that cannot fit loads the cells its dependencies reach,
-//!                 by_cells, or is refused: TilingError::PointBudget)
+//!                 axis; one point that cannot fit tries its box at the halos since the last
+//!                 round, lone_box, then the cells its dependencies reach, by_cells, or is
+//!                 refused: TilingError::PointBudget)
 //!                 run the kernel with G owned; exact results are kept, the rest stay pending
 //! ```
 //!

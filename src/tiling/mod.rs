@@ -15,9 +15,9 @@
 //!    it is provably the whole-cloud result (every k-NN ball it depends on lies inside the
 //!    region, see [`crate::denoise::cloud`]); the owned points that are not are redone in small
 //!    groups with a doubled halo, each group loading only the cells near its own points from the
-//!    neighbouring spill files and never more than the budget allows ([`growth`], [`shell`]). Finished
-//!    tiles write a result file sorted by global index, atomically: these are the checkpoints a
-//!    resumed job skips.
+//!    neighbouring spill files and never more than the budget allows ([`growth`], [`shell`]).
+//!    Finished tiles write a result file sorted by global index, atomically: these are the
+//!    checkpoints a resumed job skips.
 //! 4. **Stitch** ([`spill::ResultMerge`]): the result files merge in global-index order while
 //!    the input streams a third time, so every attribute is copied from the input untouched.
 //!

@@ -194,12 +194,6 @@ impl Plan {
         }
         r
     }
-
-    /// True when `p` lies within `halo` (L∞) of tile `t`'s box.
-    pub fn in_region(&self, t: usize, halo: f64, p: DVec3) -> bool {
-        let core = self.tiles[t].core;
-        (0..3).all(|a| p[a] >= core.min[a] - halo && p[a] <= core.max[a] + halo)
-    }
 }
 
 /// True when `p` lies within `core` grown by `faces` (−x, +x, −y, +y, −z, +z).
@@ -470,8 +464,8 @@ impl Plan {
     }
 
     /// Narrows the halos of every tile whose first load the sample predicts over `accept` points
-    /// ([`Plan::fit_faces`]) to the widest that fit (not below [`MIN_HALO_SHARE`] of the plan's), and returns the
-    /// largest and the summed first loads left. A tile next to a dense cluster, or a dense tile
+    /// to the widest that fit ([`Plan::fit_faces`], not below [`MIN_HALO_SHARE`] of the plan's),
+    /// and returns the largest and the summed first loads left. A tile next to a dense cluster, or a dense tile
     /// in a cloud whose typical spacing is wide, then loads what the budget allows instead of
     /// making every tile smaller (issue 16: a 30 M-point cluttered scene went to 747 tiles and
     /// 588 halo growths that way).
@@ -711,7 +705,7 @@ mod tests {
             let mut near = Vec::new();
             plan.near(p, 25.0, &mut near);
             for tile in &plan.tiles {
-                assert_eq!(near.contains(&tile.id), plan.in_region(tile.id, 25.0, p));
+                assert_eq!(near.contains(&tile.id), within(&tile.core, &[25.0; 6], p));
             }
         }
     }
