@@ -36,6 +36,10 @@ pub struct Report {
     pub empty_tiles: u64,
     /// Times a tile's halo had to grow.
     pub halo_growths: u64,
+    /// Kernel runs on the cells the dependencies of lone points reach, where a point's halo
+    /// alone would hold more than the memory budget.
+    #[serde(default)]
+    pub cell_runs: u64,
     /// Tiles taken from an earlier, interrupted run's checkpoints.
     #[serde(default)]
     pub tiles_resumed: u64,
@@ -107,6 +111,7 @@ impl Report {
             tiles: 1,
             empty_tiles: 0,
             halo_growths: 0,
+            cell_runs: 0,
             tiles_resumed: 0,
             bytes_spilled: 0,
             stats: Stats::default(),

@@ -12,10 +12,12 @@
 //!        ▼
 //!     for each G: load every point of the cells within hᵣ of G's points (Shell) from the
 //!                 spill files (≤ max_points, else G is cut in two at the median of its longest
-//!                 axis; one point that cannot fit tries its box at the halos since the last
-//!                 round, lone_box, then the cells its dependencies reach, by_cells, or is
-//!                 refused: TilingError::PointBudget)
+//!                 axis; a point that cannot fit alone is set aside as *lone*)
 //!                 run the kernel with G owned; exact results are kept, the rest stay pending
+//!     the lone points, together: load only the occupancy cells their dependencies reach
+//!                 (by_cells; one spill read per round serves them all), halved while over
+//!                 max_points; one that still cannot fit tries its box at the halos since the
+//!                 last round (lone_box), or is refused: TilingError::PointBudget
 //! ```
 //!
 //! A result the kernel proves exact equals the whole-cloud result whatever else was loaded, so
@@ -27,13 +29,13 @@
 //! (issue 16).
 
 use std::cell::Cell;
-use std::collections::HashSet;
 use std::path::Path;
 
 use glam::DVec3;
 
+use super::fine::{self, FineCells};
 use super::plan::{self, Plan};
-use super::shell::Shell;
+use super::shell::{self, Shell};
 use super::spill::{TilePoint, read_spill};
 use super::{TileBudget, TilingError};
 use crate::denoise::DenoiseError;
@@ -149,6 +151,8 @@ pub fn with_exact_halo<V: Default>(
         growth.halo = halo;
         only_few = true;
         let mut next = Vec::new();
+        // Lone points whose cells do not fit, with the points their shell found.
+        let mut lonely: Vec<(Pending, u64)> = Vec::new();
         let mut stack = vec![std::mem::take(&mut pending)];
         while let Some(mut group) = stack.pop() {
             check_cancel()?;
@@ -156,48 +160,12 @@ pub fn with_exact_halo<V: Default>(
             let shell = Shell::around(plan.origin, plan.bounds, points, halo, budget.max_points);
             let loaded = match load_shell(dir, plan, &shell, &group, budget.max_points)? {
                 Ok(loaded) => loaded,
-                Err(found) if group.len() == 1 => {
-                    // The shell is too large. A lone point's box is smaller than its shell, and
-                    // the rounds may have skipped the halo it needs (the plan's halo is their
-                    // floor): its box at each halo from twice the last round's up to this one.
-                    let lone = lone_box(
-                        dir,
-                        plan,
-                        budget,
-                        group[0],
-                        (before, halo),
-                        min_points,
-                        &mut f,
-                    )?;
-                    if let Some((v, still, n)) = lone {
-                        merge(&mut value, v);
-                        growth.groups += 1;
-                        growth.loaded = growth.loaded.max(n);
-                        only_few &= still.is_empty();
-                        next.extend(still);
-                        continue;
-                    }
-                    // Load only the cells its dependencies reach.
-                    let by = by_cells(dir, plan, budget, t, &group, (hops, min_points), &mut f)?;
-                    let Some((v, still, n)) = by else {
-                        return Err(TilingError::PointBudget {
-                            tile: t,
-                            index: group[0].0,
-                            found,
-                            max: budget.max_points.unwrap_or(0),
-                            halo,
-                        });
-                    };
-                    merge(&mut value, v);
-                    growth.groups += 1;
-                    growth.cells += 1;
-                    growth.loaded = growth.loaded.max(n);
-                    only_few &= still.is_empty();
-                    next.extend(still);
+                Err(found) if group.len() <= LONE_GROUP => {
+                    lonely.extend(group.into_iter().map(|g| (g, found)));
                     continue;
                 }
                 Err(_) => {
-                    let (a, b) = halves(&mut group);
+                    let (a, b) = halves(&mut group, |g| *g);
                     stack.push(b);
                     stack.push(a);
                     continue;
@@ -209,8 +177,9 @@ pub fn with_exact_halo<V: Default>(
                 next.extend(group);
                 continue;
             }
+            let proof = |p: DVec3, r2: f64| shell.complete(p, r2);
             let (v, exact) =
-                run_kernel(plan, budget, &loaded, Aabb::empty(), Some(&shell), &mut f)?;
+                run_kernel(plan, budget, &loaded, Aabb::empty(), Some(&proof), &mut f)?;
             drop(shell);
             merge(&mut value, v);
             let before = next.len();
@@ -223,28 +192,95 @@ pub fn with_exact_halo<V: Default>(
             );
             only_few &= next.len() == before;
         }
+        // The lone points load only the cells their dependencies reach, as many together as
+        // fit: one read of the spill files serves them all (each alone read them a dozen times).
+        let mut stack = if lonely.is_empty() {
+            Vec::new()
+        } else {
+            vec![lonely]
+        };
+        while let Some(mut group) = stack.pop() {
+            check_cancel()?;
+            let points: Vec<Pending> = group.iter().map(|g| g.0).collect();
+            let outcome = by_cells(dir, plan, budget, t, &points, (hops, min_points), &mut f)?;
+            let (v, still, n) = match outcome {
+                ByCells::Ran(v, still, n) => {
+                    growth.cells += 1;
+                    (v, still, n)
+                }
+                ByCells::Over(_) | ByCells::Unproven if group.len() > 1 => {
+                    let (a, b) = halves(&mut group, |g| g.0);
+                    stack.push(b);
+                    stack.push(a);
+                    continue;
+                }
+                outcome => {
+                    // The shell is too large, and so are the cells. A lone point's box is
+                    // smaller than its shell, and the rounds may have skipped the halo it needs
+                    // (the plan's halo is their floor): its box at each halo from twice the
+                    // last round's up to this one.
+                    let (point, shell_found) = group[0];
+                    let lone =
+                        lone_box(dir, plan, budget, point, (before, halo), min_points, &mut f)?;
+                    let Some(ran) = lone else {
+                        let found = match outcome {
+                            ByCells::Over(found) => found,
+                            _ => shell_found,
+                        };
+                        return Err(TilingError::PointBudget {
+                            tile: t,
+                            index: point.0,
+                            found,
+                            max: budget.max_points.unwrap_or(0),
+                            halo,
+                        });
+                    };
+                    ran
+                }
+            };
+            merge(&mut value, v);
+            growth.groups += 1;
+            growth.loaded = growth.loaded.max(n);
+            only_few &= still.is_empty();
+            next.extend(still);
+        }
         pending = next;
     }
     Ok((value, growth))
 }
 
+/// Groups of at most this many points whose cells do not fit go to [`by_cells`] with the lone
+/// points, instead of halving on: halving reads the spill files once per half, down to single
+/// points, and the cells a point's dependencies reach are far fewer than its halo's.
+const LONE_GROUP: usize = 32;
+
 /// Rounds of [`by_cells`] per hop of the results (each round adds the cells the incomplete balls
 /// of the dependencies touch; a chain of `hops` hops needs about that many).
 const CELL_ROUNDS_PER_HOP: usize = 3;
 
-/// Runs `f` on the cells of the occupancy grid that `group`'s results depend on, for a group whose
-/// box holds more points than the budget allows (a sparse point above a dense surface): starting
-/// from the cells around the group, it computes the k-NN lists of what is loaded (capped as the
-/// kernel caps them), follows them `hops` hops from the group, and adds every cell the ball of an
-/// incomplete list there touches, until none is left; then the kernel runs with no region (every
-/// ball proven by the grid). Which cells are loaded decides only whether the kernel can prove
-/// results exact, never a value. Returns the value, the group's points still not exact and the
-/// points loaded; `None` when the grid cannot prove the needed balls (no grid, balls wider than
-/// it visits, or too many rounds).
+/// What [`by_cells`] did with a group.
+enum ByCells<V> {
+    /// The kernel ran: its value, the group's points still not exact, the points loaded.
+    Ran(V, Vec<Pending>, u64),
+    /// The cells the group depends on hold more points than the budget allows one run (this
+    /// many were seen before the read stopped).
+    Over(u64),
+    /// The cells cannot prove the balls the group needs.
+    Unproven,
+}
+
+/// Runs `f` on the fine cells ([`FineCells`]) that `group`'s results depend on, for lone points
+/// whose halo holds more points than the budget allows (a sparse point beside a dense cluster):
+/// starting from a small ball around each point (or, with too few points for a list, the ball
+/// through the nearest occupancy cells holding more than k), it computes the k-NN lists of what
+/// is loaded (capped as the kernel caps them), follows them `hops` hops from the group, and adds
+/// the cells of every ball there not proven complete, until none is left; then the kernel runs
+/// with the cells as its proof. Which cells are loaded decides only whether the kernel can prove
+/// results exact, never a value. [`ByCells::Unproven`] when the cells cannot prove the needed
+/// balls (no grid, balls wider than they visit, or too many rounds).
 ///
 /// # Errors
-/// Spill read failures, `f`'s errors, cancellation, [`TilingError::PointBudget`] when the needed
-/// cells hold more points than the budget allows one run.
+/// Spill read failures, `f`'s errors, cancellation.
 fn by_cells<V>(
     dir: &Path,
     plan: &Plan,
@@ -253,26 +289,17 @@ fn by_cells<V>(
     group: &[Pending],
     (hops, k): (usize, usize),
     f: &mut impl FnMut(&[TilePoint], &CloudRun) -> Result<RunOutput<V>, TilingError>,
-) -> Result<Option<(V, Vec<Pending>, u64)>, TilingError> {
+) -> Result<ByCells<V>, TilingError> {
     let Some(o) = budget.occupancy else {
-        return Ok(None);
+        return Ok(ByCells::Unproven);
     };
     let max = budget.max_points.unwrap_or(u64::MAX);
-    let mut cells = HashSet::new();
-    let ring = |cells: &mut HashSet<[i64; 3]>, c: [i64; 3]| {
-        for x in -1..=1 {
-            for y in -1..=1 {
-                for z in -1..=1 {
-                    let n = [c[0] + x, c[1] + y, c[2] + z];
-                    if o.count(n) > 0 {
-                        cells.insert(n);
-                    }
-                }
-            }
-        }
-    };
+    let mut cells = FineCells::new(o, shell::most_cells(budget.max_points));
+    let edge = o.cell() / f64::from(1u32 << fine::FINE_SHIFT);
     for (_, p) in group {
-        ring(&mut cells, o.cell_of(*p));
+        if cells.add_ball(*p, edge * edge).is_err() {
+            return Ok(ByCells::Unproven);
+        }
     }
     let denoise = |e| TilingError::Denoise {
         tile: t,
@@ -280,23 +307,31 @@ fn by_cells<V>(
     };
     for _ in 0..CELL_ROUNDS_PER_HOP * (hops + 2) {
         check_cancel()?;
-        let pts = match load_cells(dir, plan, o, &cells, group, max)? {
+        let span = cells.span();
+        let pts = match load_where(dir, plan, &span, |p| cells.contains(p), group, Some(max))? {
             Ok(p) => p,
-            Err(found) => {
-                return Err(TilingError::PointBudget {
-                    tile: t,
-                    index: group[0].0,
-                    found,
-                    max,
-                    halo: f64::NAN,
-                });
-            }
+            Err(found) => return Ok(ByCells::Over(found)),
         };
         if pts.len() <= k {
-            // Too few points for a list: widen by a ring of cells.
-            let now: Vec<[i64; 3]> = cells.iter().copied().collect();
-            for c in now {
-                ring(&mut cells, c);
+            // Too few points for a list: the ball through the nearest occupancy cells that hold
+            // more than k points, across empty space.
+            let mut added = false;
+            for (_, p) in group {
+                let reach = o
+                    .nearest_cells(*p, k as u64 + 1)
+                    .into_iter()
+                    .map(|c| {
+                        let b = o.cell_box(c);
+                        (b.min - *p).abs().max((b.max - *p).abs()).length_squared()
+                    })
+                    .fold(0.0, f64::max);
+                match cells.add_ball(*p, reach) {
+                    Ok(a) => added |= a,
+                    Err(_) => return Ok(ByCells::Unproven),
+                }
+            }
+            if !added {
+                return Ok(ByCells::Unproven);
             }
             continue;
         }
@@ -333,50 +368,30 @@ fn by_cells<V>(
         }
         let mut added = false;
         for &i in &deps {
-            if o.complete(&loaded, positions[i], radii[i]) {
+            let (p, r2) = (positions[i], radii[i]);
+            if cells.complete(p, r2) || o.complete(&loaded, p, r2) {
                 continue;
             }
-            let Some(touched) = o.ball_cells(positions[i], radii[i]) else {
-                return Ok(None);
-            };
-            for c in touched {
-                if o.count(c) > 0 {
-                    added |= cells.insert(c);
-                }
+            match cells.add_ball(p, r2) {
+                Ok(a) => added |= a,
+                Err(_) => return Ok(ByCells::Unproven),
             }
         }
         if added {
             continue;
         }
         drop((lists, radii, loaded));
-        let (v, exact) = run_kernel(plan, budget, &pts, Aabb::empty(), None, f)?;
+        let proof = |p: DVec3, r2: f64| cells.complete(p, r2);
+        let (v, exact) = run_kernel(plan, budget, &pts, Aabb::empty(), Some(&proof), f)?;
         let still = pts
             .iter()
             .zip(&exact)
             .filter(|(p, e)| p.owned && !**e)
             .map(|(p, _)| (p.index, p.p))
             .collect();
-        return Ok(Some((v, still, pts.len() as u64)));
+        return Ok(ByCells::Ran(v, still, pts.len() as u64));
     }
-    Ok(None)
-}
-
-/// Every point of the cloud in `cells`, the points of `group` marked owned; `Err(found)` when
-/// there are more than `max`.
-fn load_cells(
-    dir: &Path,
-    plan: &Plan,
-    o: &super::occupancy::Occupancy,
-    cells: &HashSet<[i64; 3]>,
-    group: &[Pending],
-    max: u64,
-) -> Result<Result<Vec<TilePoint>, u64>, TilingError> {
-    let mut bx = Aabb::empty();
-    for &c in cells {
-        bx.union(&o.cell_box(c));
-    }
-    let keep = |p| cells.contains(&o.cell_of(p));
-    load_where(dir, plan, &bx, keep, group, Some(max))
+    Ok(ByCells::Unproven)
 }
 
 /// [`TilingError::Cancelled`] once Ctrl-C or SIGTERM set the run's flag.
@@ -388,14 +403,17 @@ fn check_cancel() -> Result<(), TilingError> {
     }
 }
 
+/// A proof that every point of the cloud in a ball (centre, squared radius) was loaded.
+type Proof<'a> = &'a (dyn Fn(DVec3, f64) -> bool + Sync);
+
 /// Runs `f` on `pts` with `region` the box holding every point of the cloud inside it, and
-/// `shell`, when given, the cells holding every point of the cloud in them.
+/// `cells`, when given, the proof of the cells loaded beside it ([`Shell`], [`FineCells`]).
 fn run_kernel<V>(
     plan: &Plan,
     budget: &TileBudget,
     pts: &[TilePoint],
     region: Aabb,
-    shell: Option<&Shell>,
+    cells: Option<Proof>,
     f: &mut impl FnMut(&[TilePoint], &CloudRun) -> Result<RunOutput<V>, TilingError>,
 ) -> Result<RunOutput<V>, TilingError> {
     let occupancy = budget.occupancy;
@@ -403,11 +421,11 @@ fn run_kernel<V>(
     let ties: Vec<u64> = pts.iter().map(|p| p.index).collect();
     let owned: Vec<bool> = pts.iter().map(|p| p.owned).collect();
     let held: Vec<bool> = pts.iter().map(|p| p.held).collect();
-    // Balls crossing the region are complete when the shell's cells hold them, or when the
+    // Balls crossing the region are complete when the loaded cells hold them, or when the
     // occupancy cells they touch hold nothing more.
     let loaded = std::sync::OnceLock::new();
     let complete = |p: DVec3, r2: f64| {
-        shell.is_some_and(|s| s.complete(p, r2))
+        cells.is_some_and(|c| c(p, r2))
             || occupancy.is_some_and(|o| {
                 o.complete(
                     loaded.get_or_init(|| o.loaded(positions.iter().copied())),
@@ -423,7 +441,7 @@ fn run_kernel<V>(
         region: Some(region),
         isolation: plan.isolation,
         short_lists: plan.short_lists,
-        complete: (occupancy.is_some() || shell.is_some())
+        complete: (occupancy.is_some() || cells.is_some())
             .then_some(&complete as &(dyn Fn(DVec3, f64) -> bool + Sync)),
         wanted: Some(&owned),
         held: held.iter().any(|&h| h).then_some(held.as_slice()),
@@ -444,11 +462,11 @@ fn grown(group: &[Pending], halo: f64) -> Aabb {
     b
 }
 
-/// Splits `group` at the median of its longest axis (ties by global index), so the cut is the
-/// same on every run.
-fn halves(group: &mut Vec<Pending>) -> (Vec<Pending>, Vec<Pending>) {
-    let b = grown(group, 0.0);
-    let size = b.size();
+/// Splits `group` (of items at the pending point `at` gives) at the median of its longest axis
+/// (ties by global index), so the cut is the same on every run.
+fn halves<T>(group: &mut Vec<T>, at: impl Fn(&T) -> Pending) -> (Vec<T>, Vec<T>) {
+    let points: Vec<Pending> = group.iter().map(&at).collect();
+    let size = grown(&points, 0.0).size();
     let axis = if size.x >= size.y && size.x >= size.z {
         0
     } else if size.y >= size.z {
@@ -456,7 +474,10 @@ fn halves(group: &mut Vec<Pending>) -> (Vec<Pending>, Vec<Pending>) {
     } else {
         2
     };
-    group.sort_unstable_by(|a, b| a.1[axis].total_cmp(&b.1[axis]).then(a.0.cmp(&b.0)));
+    group.sort_unstable_by(|a, b| {
+        let (a, b) = (at(a), at(b));
+        a.1[axis].total_cmp(&b.1[axis]).then(a.0.cmp(&b.0))
+    });
     let right = group.split_off(group.len() / 2);
     (std::mem::take(group), right)
 }

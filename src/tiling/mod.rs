@@ -27,6 +27,7 @@
 //! With ties broken by global index, sums in a fixed order and Jacobi passes, the tiled output is
 //! bit-identical to the in-memory output for any tile size.
 
+pub mod fine;
 pub mod growth;
 pub mod occupancy;
 pub mod plan;
@@ -134,6 +135,10 @@ pub struct TileOutcome {
     pub halo_growths: u32,
     /// The halo that made every owned result exact.
     pub halo: f64,
+    /// Kernel runs on the cells the dependencies of lone points reach (points whose halo
+    /// alone would hold more than the budget).
+    #[serde(default)]
+    pub cell_runs: u32,
     /// Bytes of the result file.
     pub result_bytes: u64,
     /// Counters of the owned points and phase timings.
@@ -270,6 +275,7 @@ pub fn process_tile(
     let mut outcome = TileOutcome {
         halo: growth.halo,
         halo_growths: growth.rounds,
+        cell_runs: growth.cells,
         loaded: growth.loaded,
         stats,
         knn_mean,

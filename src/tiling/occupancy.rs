@@ -74,6 +74,32 @@ impl Occupancy {
         [c.x as i64, c.y as i64, c.z as i64].map(|v| v >> self.level.min(63))
     }
 
+    /// The key of `p` in the grid of cells `2^shift` times finer along each axis, with the same
+    /// corner: its cell's key is this key shifted right by `shift` (exactly: the finer keys
+    /// either shift the base keys less, or scale by a power of two, which rounds nothing).
+    pub fn fine_key(&self, p: DVec3, shift: u32) -> [i64; 3] {
+        let y = (p - self.origin) / self.base;
+        if self.level >= shift {
+            let c = y.floor();
+            [c.x as i64, c.y as i64, c.z as i64].map(|v| v >> (self.level - shift).min(63))
+        } else {
+            let c = (y * f64::from(1u32 << (shift - self.level).min(31))).floor();
+            [c.x as i64, c.y as i64, c.z as i64]
+        }
+    }
+
+    /// The box of the fine cell `key` of [`Occupancy::fine_key`] (closed, padded as
+    /// [`Occupancy::cell_box`]).
+    pub fn fine_box(&self, key: [i64; 3], shift: u32) -> crate::points::Aabb {
+        let cell = self.cell() / f64::from(1u32 << shift.min(31));
+        let min = self.origin + DVec3::new(key[0] as f64, key[1] as f64, key[2] as f64) * cell;
+        let pad = DVec3::splat(cell * 1e-9 + (min.abs().max_element() + cell) * 1e-15);
+        crate::points::Aabb {
+            min: min - pad,
+            max: min + DVec3::splat(cell) + pad,
+        }
+    }
+
     /// The key of the cell holding `p`.
     pub fn cell_of(&self, p: DVec3) -> [i64; 3] {
         self.key(p)
@@ -120,6 +146,33 @@ impl Occupancy {
         Some(out)
     }
 
+    /// The non-empty cells nearest `p` (by the distance from `p` to the cell, then by key), as
+    /// few as hold at least `want` points together (every non-empty cell when the grid holds
+    /// fewer). One pass over the map: for a point whose surroundings are empty, where widening
+    /// by neighbouring cells would never reach anything.
+    pub fn nearest_cells(&self, p: DVec3, want: u64) -> Vec<[i64; 3]> {
+        let mut by_distance: Vec<(f64, [i64; 3], u64)> = self
+            .counts
+            .iter()
+            .map(|(&k, &n)| {
+                let b = self.cell_box(k);
+                let d = (b.min - p).max(p - b.max).max(DVec3::ZERO);
+                (d.length_squared(), k, n)
+            })
+            .collect();
+        by_distance.sort_unstable_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+        let mut sum = 0u64;
+        let mut out = Vec::new();
+        for (_, k, n) in by_distance {
+            if sum >= want {
+                break;
+            }
+            sum += n;
+            out.push(k);
+        }
+        out
+    }
+
     /// Counts `p` (a processed position).
     pub fn add(&mut self, p: DVec3) {
         *self.counts.entry(self.key(p)).or_insert(0) += 1;
@@ -130,7 +183,7 @@ impl Occupancy {
 
     /// Doubles the cell size, merging counts exactly (a cell's parent is its key shifted right
     /// by one, as [`Occupancy::key`] computes it).
-    fn coarsen(&mut self) {
+    pub(crate) fn coarsen(&mut self) {
         self.level += 1;
         let old = std::mem::take(&mut self.counts);
         for (k, n) in old {
@@ -336,6 +389,29 @@ mod tests {
                 .sum();
             assert_eq!(g.points_in(&region), by_map, "{region:?}");
         }
+    }
+
+    #[test]
+    fn issue16_nearest_cells_reach_the_wanted_count_across_empty_space() {
+        let mut g = Occupancy::new(1.0, DVec3::ZERO);
+        let lone = DVec3::new(0.5, 0.5, 0.5);
+        g.add(lone);
+        // Nothing in the 26 cells around the lone point; a cluster 10 cells away, a farther one.
+        for i in 0..5 {
+            g.add(DVec3::new(10.5, 0.5 + 0.1 * i as f64, 0.5));
+        }
+        for i in 0..50 {
+            g.add(DVec3::new(-20.5, 0.5, 0.5 + 0.01 * i as f64));
+        }
+        assert_eq!(g.nearest_cells(lone, 1), vec![[0, 0, 0]]);
+        assert_eq!(g.nearest_cells(lone, 3), vec![[0, 0, 0], [10, 0, 0]]);
+        assert_eq!(
+            g.nearest_cells(lone, 7),
+            vec![[0, 0, 0], [10, 0, 0], [-21, 0, 0]]
+        );
+        // More than the grid holds: every cell.
+        assert_eq!(g.nearest_cells(lone, 1000).len(), 3);
+        assert!(g.nearest_cells(lone, 0).is_empty());
     }
 
     #[test]

@@ -39,6 +39,16 @@ const MIN_CELLS: usize = 1 << 12;
 /// Most cells a ball's bounding box may touch and still be proven.
 const MAX_VISITS: i64 = 4096;
 
+/// Most cells a set of loaded cells may keep for kernel runs of at most `max_points` points:
+/// one per [`POINTS_PER_CELL`], between [`MIN_CELLS`] and [`MAX_CELLS`].
+pub fn most_cells(max_points: Option<u64>) -> usize {
+    max_points.map_or(MAX_CELLS, |m| {
+        usize::try_from(m / POINTS_PER_CELL)
+            .unwrap_or(MAX_CELLS)
+            .clamp(MIN_CELLS, MAX_CELLS)
+    })
+}
+
 /// Cells in the cube of `dilation` cells around one.
 fn cube(dilation: i64) -> usize {
     let side = (2 * dilation + 1) as usize;
@@ -65,11 +75,7 @@ impl Shell {
         halo: f64,
         max_points: Option<u64>,
     ) -> Shell {
-        let most = max_points.map_or(MAX_CELLS, |m| {
-            usize::try_from(m / POINTS_PER_CELL)
-                .unwrap_or(MAX_CELLS)
-                .clamp(MIN_CELLS, MAX_CELLS)
-        });
+        let most = most_cells(max_points);
         let mut shell = Shell {
             origin,
             cell: halo / DILATION as f64,

@@ -152,7 +152,7 @@ pub fn summary(work: &WorkUrl) -> Result<Report, ScaleoutError> {
     let w = WorkDir::persistent(dir).map_err(|e| IoError::io(dir, e))?;
     let plan = &frozen.plan;
     let mut stats = Stats::default();
-    let (mut growths, mut empty, mut result_bytes) = (0u64, 0u64, 0u64);
+    let (mut growths, mut cell_runs, mut empty, mut result_bytes) = (0u64, 0u64, 0u64, 0u64);
     for t in 0..plan.tiles.len() {
         let o = w.committed_tile(t).ok_or_else(|| ScaleoutError::NotReady {
             path: dir.to_path_buf(),
@@ -161,6 +161,7 @@ pub fn summary(work: &WorkUrl) -> Result<Report, ScaleoutError> {
         })?;
         stats.merge(&o.stats);
         growths += u64::from(o.halo_growths);
+        cell_runs += u64::from(o.cell_runs);
         empty += u64::from(o.owned == 0);
         result_bytes += o.result_bytes;
     }
@@ -180,6 +181,7 @@ pub fn summary(work: &WorkUrl) -> Result<Report, ScaleoutError> {
     r.tiles = plan.tiles.len() as u64;
     r.empty_tiles = empty;
     r.halo_growths = growths;
+    r.cell_runs = cell_runs;
     r.bytes_spilled = spill + result_bytes;
     r.stats = stats;
     r.phases = kernel

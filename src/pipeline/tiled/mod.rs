@@ -75,6 +75,7 @@ pub(crate) fn run(
     r.tiles = plan.tiles.len() as u64;
     r.empty_tiles = tiles.empty;
     r.halo_growths = tiles.halo_growths;
+    r.cell_runs = tiles.cell_runs;
     r.tiles_resumed = tiles.resumed;
     r.bytes_spilled = partition.bytes + tiles.result_bytes;
     r.stats = tiles.stats;
