@@ -35,38 +35,48 @@ const MAX_VISITS: usize = 1 << 16;
 /// Most occupancy cells one ball test or load looks up.
 const MAX_CELLS_VISITED: i64 = 4096;
 
-/// The fine cells loaded for a group of lone points.
+/// Occupancy cells holding at most this many points are loaded whole (one key instead of up to
+/// 512): the wide balls of sparse points cross many of them.
+const WHOLE_POINTS: u64 = 1024;
+
+/// The cells loaded for a group of lone points: whole occupancy cells where they hold few
+/// points, fine cells within the others.
 pub struct FineCells<'a> {
     grid: &'a Occupancy,
+    whole: FxHashSet<[i64; 3]>,
     cells: FxHashSet<[i64; 3]>,
     span: Aabb,
     most: usize,
 }
 
-/// A ball or cell that cannot be added: past the visits or cells allowed, or at coordinates
-/// whose keys saturate.
+/// A ball that cannot be added: past the visits or cells allowed, or at coordinates whose keys
+/// saturate.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct TooWide;
 
+/// The fine keys of a ball's bounding box, `lo` and `hi`.
+type Corners = ([i64; 3], [i64; 3]);
+
 impl<'a> FineCells<'a> {
-    /// No cells, over `grid`, keeping at most `most` cells.
+    /// No cells, over `grid`, keeping at most `most` cells (whole or fine).
     pub fn new(grid: &'a Occupancy, most: usize) -> FineCells<'a> {
         FineCells {
             grid,
+            whole: FxHashSet::default(),
             cells: FxHashSet::default(),
             span: Aabb::empty(),
             most,
         }
     }
 
-    /// Fine cells loaded.
+    /// Cells loaded (whole and fine).
     pub fn len(&self) -> usize {
-        self.cells.len()
+        self.whole.len() + self.cells.len()
     }
 
     /// True when no cell is loaded.
     pub fn is_empty(&self) -> bool {
-        self.cells.is_empty()
+        self.len() == 0
     }
 
     /// A box holding every loaded cell (what decides which spill files are read).
@@ -78,18 +88,13 @@ impl<'a> FineCells<'a> {
     pub fn contains(&self, p: DVec3) -> bool {
         let span = &self.span;
         (0..3).all(|a| p[a] >= span.min[a] && p[a] <= span.max[a])
-            && self.cells.contains(&self.grid.fine_key(p, FINE_SHIFT))
+            && (self.whole.contains(&self.grid.cell_of(p))
+                || self.cells.contains(&self.grid.fine_key(p, FINE_SHIFT)))
     }
 
-    /// Visits the fine cells of non-empty occupancy cells that the bounding box of the ball
-    /// (`p`, √`r2`) touches, until `f` says stop (false); `Err` past [`MAX_VISITS`] or for a
-    /// ball that cannot be keyed.
-    fn visit(
-        &self,
-        p: DVec3,
-        r2: f64,
-        mut f: impl FnMut([i64; 3]) -> bool,
-    ) -> Result<bool, TooWide> {
+    /// The fine keys of the bounding box of the ball (`p`, √`r2`); `Err` for a ball that cannot
+    /// be keyed or whose box touches more than [`MAX_CELLS_VISITED`] occupancy cells.
+    fn corners(&self, p: DVec3, r2: f64) -> Result<Corners, TooWide> {
         // The margins cover the rounding of the squared distances, as `cloud::inside` does.
         let r = r2.max(0.0).sqrt() * (1.0 + 1e-9) + (p.abs().max_element() + 1.0) * 1e-15;
         if !r.is_finite() {
@@ -110,91 +115,96 @@ impl<'a> FineCells<'a> {
         if span(0).saturating_mul(span(1)).saturating_mul(span(2)) > MAX_CELLS_VISITED {
             return Err(TooWide);
         }
-        let mut visits = 0usize;
+        Ok((lo, hi))
+    }
+
+    /// Calls `f` with each non-empty occupancy cell the box `(lo, hi)` touches that is not
+    /// loaded whole, and the fine keys of the box inside it; stops when `f` says so (false).
+    fn each_cell(&self, (lo, hi): Corners, mut f: impl FnMut([i64; 3], Corners) -> bool) -> bool {
+        let s = FINE_SHIFT;
         for cx in lo[0] >> s..=hi[0] >> s {
             for cy in lo[1] >> s..=hi[1] >> s {
                 for cz in lo[2] >> s..=hi[2] >> s {
-                    if self.grid.count([cx, cy, cz]) == 0 {
+                    let c = [cx, cy, cz];
+                    if self.grid.count(c) == 0 || self.whole.contains(&c) {
                         continue;
                     }
-                    // The fine cells of this occupancy cell inside [lo, hi].
-                    let range =
-                        |c: i64, a: usize| (lo[a].max(c << s), hi[a].min(((c + 1) << s) - 1));
-                    let ((x0, x1), (y0, y1), (z0, z1)) = (range(cx, 0), range(cy, 1), range(cz, 2));
-                    let n = ((x1 - x0 + 1) * (y1 - y0 + 1) * (z1 - z0 + 1)) as usize;
-                    visits += n;
-                    if visits > MAX_VISITS {
-                        return Err(TooWide);
-                    }
-                    for x in x0..=x1 {
-                        for y in y0..=y1 {
-                            for z in z0..=z1 {
-                                if !f([x, y, z]) {
-                                    return Ok(false);
-                                }
-                            }
-                        }
+                    let range = |a: usize| (lo[a].max(c[a] << s), hi[a].min(((c[a] + 1) << s) - 1));
+                    let (x, y, z) = (range(0), range(1), range(2));
+                    if !f(c, ([x.0, y.0, z.0], [x.1, y.1, z.1])) {
+                        return false;
                     }
                 }
             }
         }
-        Ok(true)
+        true
     }
 
     /// True when every point of the cloud within √`r2` of `p` lies in a loaded cell.
     pub fn complete(&self, p: DVec3, r2: f64) -> bool {
-        self.visit(p, r2, |c| self.cells.contains(&c)) == Ok(true)
+        let Ok(corners) = self.corners(p, r2) else {
+            return false;
+        };
+        let mut visits = 0usize;
+        self.each_cell(corners, |_, (a, b)| {
+            visits += fine_count(a, b);
+            visits <= MAX_VISITS
+                && (a[0]..=b[0]).all(|x| {
+                    (a[1]..=b[1]).all(|y| (a[2]..=b[2]).all(|z| self.cells.contains(&[x, y, z])))
+                })
+        })
     }
 
-    /// Loads the ball (`p`, √`r2`): every fine cell of a non-empty occupancy cell its bounding
-    /// box touches. Returns whether a cell was added.
+    /// Loads the ball (`p`, √`r2`): every occupancy cell its bounding box touches, whole where
+    /// it holds at most [`WHOLE_POINTS`] points, else the fine cells of the box within it.
+    /// Returns whether a cell was added.
     ///
     /// # Errors
     /// [`TooWide`] for a ball past the visits allowed, or when the cells would pass the most
     /// kept (nothing is added then).
     pub fn add_ball(&mut self, p: DVec3, r2: f64) -> Result<bool, TooWide> {
-        let mut new = Vec::new();
-        self.visit(p, r2, |c| {
-            if !self.cells.contains(&c) {
-                new.push(c);
+        let corners = self.corners(p, r2)?;
+        let (mut whole, mut fine) = (Vec::new(), Vec::new());
+        let mut visits = 0usize;
+        let fits = self.each_cell(corners, |c, (a, b)| {
+            if self.grid.count(c) <= WHOLE_POINTS {
+                whole.push(c);
+                return true;
             }
-            true
-        })?;
-        self.add(new)
-    }
-
-    /// Loads every fine cell of the occupancy cell `c`. Returns whether a cell was added.
-    ///
-    /// # Errors
-    /// [`TooWide`] when the cells would pass the most kept (nothing is added then).
-    pub fn add_cell(&mut self, c: [i64; 3]) -> Result<bool, TooWide> {
-        let s = FINE_SHIFT;
-        let side = 1i64 << s;
-        let mut new = Vec::new();
-        for x in 0..side {
-            for y in 0..side {
-                for z in 0..side {
-                    let f = [(c[0] << s) + x, (c[1] << s) + y, (c[2] << s) + z];
-                    if !self.cells.contains(&f) {
-                        new.push(f);
+            visits += fine_count(a, b);
+            if visits > MAX_VISITS {
+                return false;
+            }
+            for x in a[0]..=b[0] {
+                for y in a[1]..=b[1] {
+                    for z in a[2]..=b[2] {
+                        if !self.cells.contains(&[x, y, z]) {
+                            fine.push([x, y, z]);
+                        }
                     }
                 }
             }
-        }
-        self.add(new)
-    }
-
-    fn add(&mut self, new: Vec<[i64; 3]>) -> Result<bool, TooWide> {
-        if self.cells.len() + new.len() > self.most {
+            true
+        });
+        if !fits || self.len() + whole.len() + fine.len() > self.most {
             return Err(TooWide);
         }
-        let added = !new.is_empty();
-        for c in new {
+        let added = !whole.is_empty() || !fine.is_empty();
+        for c in whole {
+            self.span.union(&self.grid.cell_box(c));
+            self.whole.insert(c);
+        }
+        for c in fine {
             self.span.union(&self.grid.fine_box(c, FINE_SHIFT));
             self.cells.insert(c);
         }
         Ok(added)
     }
+}
+
+/// Fine cells in the box of keys `a..=b`.
+fn fine_count(a: [i64; 3], b: [i64; 3]) -> usize {
+    (0..3).map(|i| (b[i] - a[i] + 1).max(0) as usize).product()
 }
 
 #[cfg(test)]
@@ -204,8 +214,8 @@ mod tests {
     /// A grid with a dense cluster in one cell and a lone point two cells away.
     fn grid() -> (Occupancy, Vec<DVec3>, DVec3) {
         let mut g = Occupancy::new(1.0, DVec3::ZERO);
-        let cluster: Vec<DVec3> = (0..1000)
-            .map(|i| DVec3::new(2.1 + 0.0007 * i as f64, 0.5, 0.5))
+        let cluster: Vec<DVec3> = (0..2000)
+            .map(|i| DVec3::new(2.1 + 0.00035 * i as f64, 0.5, 0.5))
             .collect();
         let lone = DVec3::new(0.2, 0.5, 0.5);
         for p in cluster.iter().chain([&lone]) {
@@ -244,18 +254,18 @@ mod tests {
         assert!(cells.complete(lone, r2));
         assert!(!cells.add_ball(lone, r2).unwrap());
         assert!(cells.contains(lone) && cells.contains(cluster[0]));
-        // Only part of the cluster's cell: its far end is not loaded, and a ball reaching it is
-        // not complete.
+        // The lone point's cell (one point) is loaded whole; only part of the cluster's cell
+        // (2000 points) is: its far end is not loaded, and a ball reaching it is not complete.
+        assert!(cells.whole.contains(&g.cell_of(lone)));
+        assert!(!cells.whole.contains(&g.cell_of(cluster[0])));
         assert!(!cells.contains(cluster[999]));
         assert!(!cells.complete(lone, (cluster[999] - lone).length_squared()));
-        // The empty cell between them was skipped: at most two occupancy cells' fine cells.
-        assert!(cells.len() <= 2 * 512, "{}", cells.len());
-        // A whole cell.
-        assert!(cells.add_cell(g.cell_of(cluster[999])).unwrap());
-        assert!(cells.contains(cluster[999]));
+        // The empty cell between them was skipped: one whole cell and at most one cell's fine
+        // cells.
+        assert!(cells.len() <= 1 + 512, "{}", cells.len());
         // Past the cells kept, nothing is added.
         let mut few = FineCells::new(&g, 10);
-        assert_eq!(few.add_cell(g.cell_of(lone)), Err(TooWide));
+        assert_eq!(few.add_ball(cluster[500], 0.25), Err(TooWide));
         assert!(few.is_empty());
         // A ball too wide to visit, or not finite, is never proven.
         assert!(!cells.complete(lone, 1e12));
