@@ -177,7 +177,16 @@ fn issue11_service_job_on_slurm_downloads_the_denoise_bytes() {
     assert_eq!(jobs[2].2, 2, "tiles in arrays of slurm_max_tasks: {done}");
     assert_eq!(done["slurm"]["resubmits"], 0, "{done}");
     assert!(done["report"]["tiles"].as_u64().unwrap() > 2, "{done}");
-    let tasks = named(&cl, &id);
+    // A task whose commit the service saw may still be COMPLETING (SLURM's clean-up after the
+    // step ends, seconds on a loaded machine): wait for the final states, boundedly.
+    let mut tasks = named(&cl, &id);
+    for _ in 0..120 {
+        if tasks.iter().all(|t| t.1 != "COMPLETING") {
+            break;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(250));
+        tasks = named(&cl, &id);
+    }
     let ids: Vec<&str> = jobs.iter().map(|j| j.1.as_str()).collect();
     assert_eq!(
         tasks.len() as u64,
