@@ -12,10 +12,11 @@
 //!        ▼
 //!     for each G: load every point of the cells within hᵣ of G's points (Shell) from the
 //!                 spill files (≤ max_points, else G is cut in two at the median of its longest
-//!                 axis; a point that cannot fit alone is set aside as *lone*)
+//!                 axis; a group of at most LONE_GROUP points that cannot fit is set aside as
+//!                 *lone*)
 //!                 run the kernel with G owned; exact results are kept, the rest stay pending
-//!     the lone points, together: load only the occupancy cells their dependencies reach
-//!                 (by_cells; one spill read per round serves them all), halved while over
+//!     the lone points, together: load only the cells their dependencies reach (by_cells on
+//!                 FineCells; one spill read per round serves them all), halved while over
 //!                 max_points; one that still cannot fit tries its box at the halos since the
 //!                 last round (lone_box), or is refused: TilingError::PointBudget
 //! ```

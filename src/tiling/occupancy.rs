@@ -148,22 +148,26 @@ impl Occupancy {
 
     /// The non-empty cells nearest `p` (by the distance from `p` to the cell, then by key), as
     /// few as hold at least `want` points together (every non-empty cell when the grid holds
-    /// fewer). One pass over the map: for a point whose surroundings are empty, where widening
+    /// fewer). One pass over the map keeping the `want` nearest cells (every cell holds a
+    /// point, so no more are needed): for a point whose surroundings are empty, where widening
     /// by neighbouring cells would never reach anything.
     pub fn nearest_cells(&self, p: DVec3, want: u64) -> Vec<[i64; 3]> {
-        let mut by_distance: Vec<(f64, [i64; 3], u64)> = self
-            .counts
-            .iter()
-            .map(|(&k, &n)| {
-                let b = self.cell_box(k);
-                let d = (b.min - p).max(p - b.max).max(DVec3::ZERO);
-                (d.length_squared(), k, n)
-            })
-            .collect();
-        by_distance.sort_unstable_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+        let keep = usize::try_from(want).unwrap_or(usize::MAX);
+        // A max-heap of the nearest cells so far; distances are non-negative, so their bits
+        // order as they do.
+        let mut near: std::collections::BinaryHeap<(u64, [i64; 3], u64)> =
+            std::collections::BinaryHeap::new();
+        for (&k, &n) in &self.counts {
+            let b = self.cell_box(k);
+            let d = (b.min - p).max(p - b.max).max(DVec3::ZERO).length_squared();
+            near.push((d.to_bits(), k, n));
+            if near.len() > keep {
+                near.pop();
+            }
+        }
         let mut sum = 0u64;
         let mut out = Vec::new();
-        for (_, k, n) in by_distance {
+        for (_, k, n) in near.into_sorted_vec() {
             if sum >= want {
                 break;
             }
