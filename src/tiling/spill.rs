@@ -181,26 +181,34 @@ pub fn read_spill(
             detail: format!("{len} bytes is not a whole number of {SPILL_RECORD}-byte records"),
         });
     }
-    let mut r = BufReader::with_capacity(BUFFER, f);
-    let mut rec = [0u8; SPILL_RECORD];
-    for n in 0..len / SPILL_RECORD as u64 {
-        // A grown halo reads many files: honour Ctrl-C every 2 MiB.
-        if n % (1 << 16) == 0 && crate::neighbours::cancel_requested() {
+    // Whole buffers of records, decoded in place (reading record by record through a
+    // `BufReader` copied every record once more: growth reads spill files many times).
+    let mut r = f;
+    let mut buf = vec![0u8; BUFFER];
+    let mut left = len;
+    while left > 0 {
+        // A grown halo reads many files: honour Ctrl-C every buffer (8192 records).
+        if crate::neighbours::cancel_requested() {
             return Err(TilingError::Cancelled);
         }
-        r.read_exact(&mut rec).map_err(|e| err(&path, e))?;
-        let raw = u64::from_le_bytes(rec[0..8].try_into().expect("8 bytes"));
-        let f = |o: usize| f64::from_le_bytes(rec[o..o + 8].try_into().expect("8 bytes"));
-        let p = DVec3::new(f(8), f(16), f(24));
-        let halo = raw & HALO != 0;
-        let index = raw & !(HALO | HELD);
-        if keep(index, p, halo) {
-            out.push(TilePoint {
-                index,
-                p,
-                owned: !halo,
-                held: raw & HELD != 0,
-            });
+        let take = usize::try_from(left.min(BUFFER as u64)).expect("at most BUFFER");
+        let chunk = &mut buf[..take];
+        r.read_exact(chunk).map_err(|e| err(&path, e))?;
+        left -= take as u64;
+        for rec in chunk.chunks_exact(SPILL_RECORD) {
+            let raw = u64::from_le_bytes(rec[0..8].try_into().expect("8 bytes"));
+            let f = |o: usize| f64::from_le_bytes(rec[o..o + 8].try_into().expect("8 bytes"));
+            let p = DVec3::new(f(8), f(16), f(24));
+            let halo = raw & HALO != 0;
+            let index = raw & !(HALO | HELD);
+            if keep(index, p, halo) {
+                out.push(TilePoint {
+                    index,
+                    p,
+                    owned: !halo,
+                    held: raw & HELD != 0,
+                });
+            }
         }
     }
     Ok(())
