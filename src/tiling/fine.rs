@@ -7,7 +7,9 @@
 //! not load that cell, though its list needs a handful of the cluster's points. The fine grid
 //! splits every occupancy cell into 2^[`FINE_SHIFT`] cells along each axis, keyed so that a fine
 //! cell's occupancy cell is its key shifted right (the same arithmetic as
-//! [`Occupancy::cell_of`]), which lets the proof skip every fine cell of an empty occupancy cell:
+//! [`Occupancy::cell_of`]), which lets the proof skip every fine cell of an empty occupancy cell.
+//! Occupancy cells with few points ([`WHOLE_POINTS`]) are loaded whole, one key for the 512 fine
+//! ones (the wide balls of sparse points cross many of them):
 //!
 //! ```text
 //!   occupancy cell (count from the partition pass)
