@@ -8,7 +8,7 @@
 //! splits every occupancy cell into 2^[`FINE_SHIFT`] cells along each axis, keyed so that a fine
 //! cell's occupancy cell is its key shifted right (the same arithmetic as
 //! [`Occupancy::cell_of`]), which lets the proof skip every fine cell of an empty occupancy cell.
-//! Occupancy cells with few points ([`WHOLE_POINTS`]) are loaded whole, one key for the 512 fine
+//! Occupancy cells with few points (`WHOLE_POINTS`, 1024) are loaded whole, one key for the 512 fine
 //! ones (the wide balls of sparse points cross many of them):
 //!
 //! ```text
@@ -158,7 +158,7 @@ impl<'a> FineCells<'a> {
     }
 
     /// Loads the ball (`p`, √`r2`): every occupancy cell its bounding box touches, whole where
-    /// it holds at most [`WHOLE_POINTS`] points, else the fine cells of the box within it.
+    /// it holds at most `WHOLE_POINTS` points, else the fine cells of the box within it.
     /// Returns whether a cell was added.
     ///
     /// # Errors

@@ -40,7 +40,7 @@ const MIN_CELLS: usize = 1 << 12;
 const MAX_VISITS: i64 = 4096;
 
 /// Most cells a set of loaded cells may keep for kernel runs of at most `max_points` points:
-/// one per [`POINTS_PER_CELL`], between [`MIN_CELLS`] and [`MAX_CELLS`].
+/// one per `POINTS_PER_CELL` (8), between `MIN_CELLS` (2¹²) and `MAX_CELLS` (2¹⁸).
 pub fn most_cells(max_points: Option<u64>) -> usize {
     max_points.map_or(MAX_CELLS, |m| {
         usize::try_from(m / POINTS_PER_CELL)
