@@ -576,21 +576,47 @@ fn spread3(mut v: u64) -> u64 {
     v
 }
 
+/// Morton (Z-curve) codes on a grid of 2²¹ steps per axis over a box: 63-bit keys whose order
+/// keeps points that are near in space near in the order.
+#[derive(Debug, Clone, Copy)]
+pub struct MortonGrid {
+    min: DVec3,
+    scale: DVec3,
+}
+
+impl MortonGrid {
+    /// The grid over `bounds` (an empty or flat axis maps to step 0).
+    pub fn new(bounds: &crate::points::Aabb) -> MortonGrid {
+        let size = bounds.size();
+        let scale = |e: f64| {
+            if e > 0.0 && e.is_finite() {
+                ((1u64 << 21) - 1) as f64 / e
+            } else {
+                0.0
+            }
+        };
+        MortonGrid {
+            min: bounds.min,
+            scale: DVec3::new(scale(size.x), scale(size.y), scale(size.z)),
+        }
+    }
+
+    /// The code of `p` (coordinates outside the box are clamped into it).
+    pub fn key(&self, p: DVec3) -> u64 {
+        let d = (p - self.min) * self.scale;
+        // `as` saturates (below the box, and NaN, give step 0); `min` clamps above the box, which
+        // `spread3` would otherwise wrap.
+        let q = |v: f64| (v as u64).min((1 << 21) - 1);
+        spread3(q(d.x)) | spread3(q(d.y)) << 1 | spread3(q(d.z)) << 2
+    }
+}
+
 /// The indices of `points` in Morton (Z-curve) order over their bounding box (63-bit codes, ties by
 /// index), points failing [`crate::points::in_range`] (non-finite or absurdly far) last. Kernels that visit points in this order touch neighbouring
 /// data in neighbouring memory; on shuffled input that halves the time of the normal and solve
 /// passes.
 pub fn spatial_order(points: &[DVec3]) -> Vec<u32> {
-    let bounds = crate::points::Aabb::from_points(points);
-    let size = bounds.size();
-    let scale = |e: f64| {
-        if e > 0.0 {
-            ((1u64 << 21) - 1) as f64 / e
-        } else {
-            0.0
-        }
-    };
-    let s = [scale(size.x), scale(size.y), scale(size.z)];
+    let grid = MortonGrid::new(&crate::points::Aabb::from_points(points));
     let mut keyed: Vec<(u64, u32)> = points
         .par_iter()
         .enumerate()
@@ -598,12 +624,7 @@ pub fn spatial_order(points: &[DVec3]) -> Vec<u32> {
             if !crate::points::in_range(*p) {
                 return (u64::MAX, i as u32);
             }
-            let d = *p - bounds.min;
-            let q = |v: f64, s: f64| (v * s) as u64;
-            (
-                spread3(q(d.x, s[0])) | spread3(q(d.y, s[1])) << 1 | spread3(q(d.z, s[2])) << 2,
-                i as u32,
-            )
+            (grid.key(*p), i as u32)
         })
         .collect();
     keyed.par_sort_unstable();

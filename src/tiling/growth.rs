@@ -37,7 +37,7 @@ use glam::DVec3;
 use super::fine::{self, FineCells};
 use super::plan::{self, Plan};
 use super::shell::{self, Shell};
-use super::spill::{TilePoint, read_spill};
+use super::spill::{TilePoint, read_owned_near};
 use super::{TileBudget, TilingError};
 use crate::denoise::DenoiseError;
 use crate::denoise::cloud::CloudRun;
@@ -601,11 +601,12 @@ fn load_where(
     let count = Cell::new(0u64);
     let mut pts = Vec::new();
     for other in touching(plan, span) {
-        read_spill(
+        read_owned_near(
             dir,
             other,
-            |_, p, is_halo| {
-                if is_halo || !keep(p) {
+            span,
+            |p| {
+                if !keep(p) {
                     return false;
                 }
                 count.set(count.get() + 1);

@@ -9,13 +9,15 @@
 //!    one run (a dense cluster next to the tile).
 //! 2. **Partition** ([`spill::SpillWriter`]): a second pass writes every finite point, with its
 //!    global index, to the spill file of the tile that owns it, and a halo copy to every other
-//!    tile whose box grown by its halo contains it.
+//!    tile whose box grown by its halo contains it; each buffer of owned records goes out in
+//!    Morton order, in blocks whose boxes a table beside the file keeps ([`spill`]).
 //! 3. **Process** ([`process_tile`]): each tile loads its points and runs
 //!    [`crate::denoise::cloud::run`] on them with the tile's region. A result is kept only when
 //!    it is provably the whole-cloud result (every k-NN ball it depends on lies inside the
 //!    region, see [`crate::denoise::cloud`]); the owned points that are not are redone in small
 //!    groups with a doubled halo, each group loading only the cells near its own points from the
-//!    neighbouring spill files and never more than the budget allows ([`growth`], [`shell`]).
+//!    blocks of the neighbouring spill files that meet them, and never more than the budget
+//!    allows ([`growth`], [`shell`]).
 //!    Finished tiles write a result file sorted by global index, atomically: these are the
 //!    checkpoints a resumed job skips.
 //! 4. **Stitch** ([`spill::ResultMerge`]): the result files merge in global-index order while

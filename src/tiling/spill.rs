@@ -4,16 +4,27 @@
 //!
 //! ```text
 //!  spill  tile_<t>.pts   [ index|HALO<<63|HELD<<62 : u64 | x : f64 | y : f64 | z : f64 ]   32 bytes
+//!  blocks tile_<t>.blk   [ records|RUN_END<<63 : u64 | min x y z : f64 | max x y z : f64 ] 56 bytes
+//!                        per block of the spill file, in file order
 //!  result tile_<t>.res   [ index : u64 | x : f64 | y : f64 | z : f64 | knn_mean : f64 ] 40 bytes,
 //!                        sorted by index, written atomically: a result file is a checkpoint
 //!          with normals  [ … 40 bytes as above | nx ny nz curvature : f32 | structure : u8 | 0 × 7 ]
 //!                        64 bytes, only when the run writes normals (`--write-normals`)
 //! ```
+//!
+//! The partition pass appends a tile's records a buffer at a time, in global-index order across
+//! buffers; each buffer (a *run*) is written owned records first, in Morton order over the
+//! cloud's bounds and cut into blocks of [`SPILL_BLOCK`] records, then the halo copies as one
+//! block, present even when empty and flagged `RUN_END`. The block table gives each block's
+//! record count and the box of its owned points (empty for the halo block), so halo
+//! growth, which reads only owned points near a group, reads only the blocks whose box meets
+//! the group's span ([`read_owned_near`]) instead of whole files. Readers return records in
+//! global-index order (sorting each run's records), so results never depend on the file order.
 
 use std::cmp::Reverse;
 use std::collections::BinaryHeap;
 use std::fs::File;
-use std::io::{BufReader, BufWriter, Read, Write};
+use std::io::{BufReader, BufWriter, Read, Seek, SeekFrom, Write};
 
 use std::path::{Path, PathBuf};
 
@@ -21,12 +32,19 @@ use glam::DVec3;
 use rayon::prelude::*;
 
 use super::TilingError;
-use super::workdir::{merge_path, result_path, spill_path};
+use super::workdir::{blocks_path, merge_path, result_path, spill_path};
 use crate::io::AtomicFile;
-use crate::points::PointNormal;
+use crate::neighbours::MortonGrid;
+use crate::points::{Aabb, PointNormal};
 
 /// Bytes per spill record.
 pub const SPILL_RECORD: usize = 32;
+/// Owned records per block of a spill file (8 KiB: a box per block costs 0.7 % of the file).
+pub const SPILL_BLOCK: usize = 256;
+/// Bytes per entry of a block table.
+pub const BLOCK_ENTRY: usize = 56;
+/// Bit 63 of a block table entry's record count: the block (of halo copies) ends a run.
+const RUN_END: u64 = 1 << 63;
 /// Bytes per result record.
 pub const RESULT_RECORD: usize = 40;
 /// Bytes per result record of a run that writes normals ([`TileResult::normal`]).
@@ -59,49 +77,120 @@ fn err(path: &Path, e: std::io::Error) -> TilingError {
 ///
 /// Each tile gets a memory buffer; a full buffer is appended to the tile's file, which is opened
 /// only for that write. So any number of tiles works within the open-file limit, and the buffers
-/// together stay under [`BUFFERS_TOTAL`].
+/// together stay within the memory the caller gives. A buffer is one sorted run of blocks: the
+/// longer the buffers, the smaller each block's box.
 pub struct SpillWriter {
     dir: PathBuf,
     buffers: Vec<Vec<u8>>,
     cap: usize,
     bytes: u64,
+    grid: MortonGrid,
+    /// Scratch of [`SpillWriter::flush`]: the sort keys, a record's Morton code (all ones for a
+    /// halo copy) with its place in the buffer in the low 16 bits.
+    keys: Vec<u64>,
+    /// Scratch: the buffer in block order, and its block table.
+    ordered: Vec<u8>,
+    table: Vec<u8>,
 }
 
-/// Memory for all spill buffers together.
-pub const BUFFERS_TOTAL: usize = 32 << 20;
+/// Most bytes one tile's buffer holds: 2¹⁶ records, so a record's place in its buffer fits the
+/// low 16 bits of its sort key.
+const MAX_TILE_BUFFER: usize = SPILL_RECORD << 16;
 
 impl SpillWriter {
-    /// Creates one empty spill file per tile in `dir`.
+    /// Creates one empty spill file and block table per tile in `dir`, for points within
+    /// `bounds` (the cloud's: it only orders the blocks, so any box is correct), with `memory`
+    /// bytes for the buffers of all tiles together (each between 4 KiB and 2 MiB).
     ///
     /// # Errors
     /// The files cannot be created.
-    pub fn create(dir: &Path, tiles: usize) -> Result<SpillWriter, TilingError> {
+    pub fn create(
+        dir: &Path,
+        tiles: usize,
+        bounds: &Aabb,
+        memory: u64,
+    ) -> Result<SpillWriter, TilingError> {
         for t in 0..tiles {
-            let p = spill_path(dir, t);
-            File::create(&p).map_err(|e| err(&p, e))?;
+            for p in [spill_path(dir, t), blocks_path(dir, t)] {
+                File::create(&p).map_err(|e| err(&p, e))?;
+            }
         }
-        let cap =
-            (BUFFERS_TOTAL / tiles.max(1)).clamp(4 << 10, BUFFER) / SPILL_RECORD * SPILL_RECORD;
+        let share = usize::try_from(memory / tiles.max(1) as u64).unwrap_or(usize::MAX);
+        let cap = share.clamp(4 << 10, MAX_TILE_BUFFER) / SPILL_RECORD * SPILL_RECORD;
         Ok(SpillWriter {
             dir: dir.to_path_buf(),
             buffers: vec![Vec::new(); tiles],
             cap,
             bytes: 0,
+            grid: MortonGrid::new(bounds),
+            keys: Vec::new(),
+            ordered: Vec::new(),
+            table: Vec::new(),
         })
     }
 
+    /// Appends tile `t`'s buffer to its spill file in block order, and its blocks to the table.
     fn flush(&mut self, t: usize) -> Result<(), TilingError> {
-        let path = spill_path(&self.dir, t);
-        let mut f = std::fs::OpenOptions::new()
-            .append(true)
-            .open(&path)
-            .map_err(|e| err(&path, e))?;
-        f.write_all(&self.buffers[t]).map_err(|e| err(&path, e))?;
+        let buf = &self.buffers[t];
+        self.keys.clear();
+        const PLACE: u64 = (1 << 16) - 1;
+        for (i, rec) in buf.chunks_exact(SPILL_RECORD).enumerate() {
+            let (raw, p) = decode_spill(rec);
+            // 47 bits of Morton code (almost 16 per axis) are plenty for blocks of 256.
+            let code = if raw & HALO != 0 {
+                !PLACE
+            } else {
+                self.grid.key(p) & !PLACE
+            };
+            self.keys.push(code | i as u64);
+        }
+        // Morton codes have 63 bits, so the halo copies sort last, in their buffer order.
+        self.keys.sort_unstable();
+        let owned = self.keys.partition_point(|k| k & !PLACE != !PLACE);
+        self.ordered.clear();
+        self.table.clear();
+        let (ordered, table) = (&mut self.ordered, &mut self.table);
+        let mut block = |keys: &[u64], owned: bool| {
+            let mut bx = Aabb::empty();
+            for &k in keys {
+                let rec = &buf[(k & PLACE) as usize * SPILL_RECORD..][..SPILL_RECORD];
+                if owned {
+                    // Every point, not only those `Aabb::grow` takes: the box must hold them all.
+                    let p = decode_spill(rec).1;
+                    (bx.min, bx.max) = (bx.min.min(p), bx.max.max(p));
+                }
+                ordered.extend_from_slice(rec);
+            }
+            let n = keys.len() as u64 | if owned { 0 } else { RUN_END };
+            table.extend_from_slice(&n.to_le_bytes());
+            for v in [bx.min, bx.max] {
+                for a in 0..3 {
+                    table.extend_from_slice(&v[a].to_le_bytes());
+                }
+            }
+        };
+        for keys in self.keys[..owned].chunks(SPILL_BLOCK) {
+            block(keys, true);
+        }
+        // Always, even empty: it ends the run for readers.
+        block(&self.keys[owned..], false);
+        for (path, bytes) in [
+            (spill_path(&self.dir, t), &self.ordered),
+            (blocks_path(&self.dir, t), &self.table),
+        ] {
+            let mut f = std::fs::OpenOptions::new()
+                .append(true)
+                .open(&path)
+                .map_err(|e| err(&path, e))?;
+            f.write_all(bytes).map_err(|e| err(&path, e))?;
+        }
         self.buffers[t].clear();
         Ok(())
     }
 
-    /// Appends `point` to tile `t`, as owned or as a halo copy.
+    /// Appends `point` to tile `t`, as owned or as a halo copy. Each tile's points come in
+    /// increasing global-index order (the partition streams the input in order; readers rely
+    /// on it).
     ///
     /// # Errors
     /// Write failures.
@@ -162,16 +251,15 @@ pub fn spilled_points(dir: &Path, t: usize) -> Result<u64, TilingError> {
     Ok(len / SPILL_RECORD as u64)
 }
 
-/// Reads tile `t`'s spill file; `keep` filters the records by (index, position, is_halo).
-///
-/// # Errors
-/// Read failures, a file whose length is not a whole number of records.
-pub fn read_spill(
-    dir: &Path,
-    t: usize,
-    mut keep: impl FnMut(u64, DVec3, bool) -> bool,
-    out: &mut Vec<TilePoint>,
-) -> Result<(), TilingError> {
+/// A spill record's raw index word and position.
+fn decode_spill(rec: &[u8]) -> (u64, DVec3) {
+    let f = |o: usize| f64::from_le_bytes(rec[o..o + 8].try_into().expect("8 bytes"));
+    let raw = u64::from_le_bytes(rec[0..8].try_into().expect("8 bytes"));
+    (raw, DVec3::new(f(8), f(16), f(24)))
+}
+
+/// Opens tile `t`'s spill file; returns it with its length in bytes.
+fn open_spill(dir: &Path, t: usize) -> Result<(File, PathBuf, u64), TilingError> {
     let path = spill_path(dir, t);
     let f = File::open(&path).map_err(|e| err(&path, e))?;
     let len = f.metadata().map_err(|e| err(&path, e))?.len();
@@ -181,10 +269,21 @@ pub fn read_spill(
             detail: format!("{len} bytes is not a whole number of {SPILL_RECORD}-byte records"),
         });
     }
-    // Whole buffers of records, decoded in place (reading record by record through a
-    // `BufReader` copied every record once more: growth reads spill files many times).
-    let mut r = f;
-    let mut buf = vec![0u8; BUFFER];
+    Ok((f, path, len))
+}
+
+/// Decodes `len` bytes of records from `f`'s position, a whole buffer at a time and in place
+/// (growth reads spill files many times; a `BufReader` copied every record once more); `keep`
+/// filters them by (index, position, is_halo).
+fn decode_range(
+    f: &mut File,
+    path: &Path,
+    len: u64,
+    buf: &mut Vec<u8>,
+    keep: &mut impl FnMut(u64, DVec3, bool) -> bool,
+    out: &mut Vec<TilePoint>,
+) -> Result<(), TilingError> {
+    buf.resize(BUFFER, 0);
     let mut left = len;
     while left > 0 {
         // A grown halo reads many files: honour Ctrl-C every buffer (8192 records).
@@ -193,12 +292,10 @@ pub fn read_spill(
         }
         let take = usize::try_from(left.min(BUFFER as u64)).expect("at most BUFFER");
         let chunk = &mut buf[..take];
-        r.read_exact(chunk).map_err(|e| err(&path, e))?;
+        f.read_exact(chunk).map_err(|e| err(path, e))?;
         left -= take as u64;
         for rec in chunk.chunks_exact(SPILL_RECORD) {
-            let raw = u64::from_le_bytes(rec[0..8].try_into().expect("8 bytes"));
-            let f = |o: usize| f64::from_le_bytes(rec[o..o + 8].try_into().expect("8 bytes"));
-            let p = DVec3::new(f(8), f(16), f(24));
+            let (raw, p) = decode_spill(rec);
             let halo = raw & HALO != 0;
             let index = raw & !(HALO | HELD);
             if keep(index, p, halo) {
@@ -212,6 +309,150 @@ pub fn read_spill(
         }
     }
     Ok(())
+}
+
+/// Reads tile `t`'s spill file; `keep` filters the records by (index, position, is_halo). The
+/// records it keeps are appended in global-index order.
+///
+/// # Errors
+/// Read failures, a file whose length is not a whole number of records, a block table that
+/// does not describe the file.
+pub fn read_spill(
+    dir: &Path,
+    t: usize,
+    keep: impl FnMut(u64, DVec3, bool) -> bool,
+    out: &mut Vec<TilePoint>,
+) -> Result<(), TilingError> {
+    read_blocks(dir, t, |_| true, keep, out)
+}
+
+/// Reads the owned records of tile `t`'s spill file that `keep` accepts, where `keep` accepts
+/// nothing outside `span` (up to rounding): only the blocks whose box meets `span` are read,
+/// from the block table. Appends the kept points in global-index order: exactly what
+/// [`read_spill`] keeps of the owned records `keep` accepts.
+///
+/// # Errors
+/// Read failures, a block table that does not describe the file.
+pub fn read_owned_near(
+    dir: &Path,
+    t: usize,
+    span: &Aabb,
+    mut keep: impl FnMut(DVec3) -> bool,
+    out: &mut Vec<TilePoint>,
+) -> Result<(), TilingError> {
+    // `keep` decides; the span only picks blocks, widened so that a point `keep` places in a
+    // cell whose box (computed from the cell's key) rounds a few ulps short is not missed.
+    let pad = |a: usize| 1e-9 * (span.min[a].abs() + span.max[a].abs()) + f64::MIN_POSITIVE;
+    let (lo, hi) = (
+        DVec3::new(
+            span.min.x - pad(0),
+            span.min.y - pad(1),
+            span.min.z - pad(2),
+        ),
+        DVec3::new(
+            span.max.x + pad(0),
+            span.max.y + pad(1),
+            span.max.z + pad(2),
+        ),
+    );
+    let meets = |b: &Aabb| (0..3).all(|a| b.min[a] <= hi[a] && b.max[a] >= lo[a]);
+    read_blocks(dir, t, meets, |_, p, halo| !halo && keep(p), out)
+}
+
+/// Reads the blocks of tile `t`'s spill file that `select` picks by their box (a halo block's
+/// is empty), keeping the records `keep` accepts, and appends them in global-index order. Each
+/// buffer the partition wrote is a run of an index range above the previous run's (the input
+/// streams in index order), ending with its halo block, so sorting each run's records by index
+/// orders them all. Without a
+/// table (a partition written before there were tables) the whole file is read and sorted.
+fn read_blocks(
+    dir: &Path,
+    t: usize,
+    select: impl Fn(&Aabb) -> bool,
+    mut keep: impl FnMut(u64, DVec3, bool) -> bool,
+    out: &mut Vec<TilePoint>,
+) -> Result<(), TilingError> {
+    let (mut f, path, len) = open_spill(dir, t)?;
+    let mut buf = Vec::new();
+    let table_path = blocks_path(dir, t);
+    let table = match std::fs::read(&table_path) {
+        Ok(table) => table,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            let from = out.len();
+            decode_range(&mut f, &path, len, &mut buf, &mut keep, out)?;
+            // A tile's file holds each point at most once, so the order is total.
+            out[from..].sort_unstable_by_key(|p| p.index);
+            return Ok(());
+        }
+        Err(e) => return Err(err(&table_path, e)),
+    };
+    let corrupt = |detail: String| TilingError::Corrupt {
+        path: table_path.clone(),
+        detail,
+    };
+    if table.len() % BLOCK_ENTRY != 0 {
+        return Err(corrupt(format!(
+            "{} bytes is not a whole number of {BLOCK_ENTRY}-byte entries",
+            table.len()
+        )));
+    }
+    let count = |e: &[u8]| u64::from_le_bytes(e[0..8].try_into().expect("8 bytes"));
+    let total: u64 = table
+        .chunks_exact(BLOCK_ENTRY)
+        .map(|e| count(e) & !RUN_END)
+        .fold(0, u64::saturating_add);
+    if total.saturating_mul(SPILL_RECORD as u64) != len {
+        return Err(corrupt(format!(
+            "its blocks hold {total} records, the spill file {len} bytes"
+        )));
+    }
+    // Consecutive picked blocks are read at once: (first byte, bytes).
+    let mut pending: Option<(u64, u64)> = None;
+    let mut run_from = out.len();
+    let mut at = 0u64;
+    for e in table.chunks_exact(BLOCK_ENTRY) {
+        let (n, end) = (count(e) & !RUN_END, count(e) & RUN_END != 0);
+        let v = |o: usize| f64::from_le_bytes(e[o..o + 8].try_into().expect("8 bytes"));
+        let bx = Aabb {
+            min: DVec3::new(v(8), v(16), v(24)),
+            max: DVec3::new(v(32), v(40), v(48)),
+        };
+        let bytes = n * SPILL_RECORD as u64;
+        if select(&bx) {
+            pending = match pending {
+                Some((from, size)) if from + size == at => Some((from, size + bytes)),
+                other => {
+                    read_at(&mut f, &path, other, &mut buf, &mut keep, out)?;
+                    Some((at, bytes))
+                }
+            };
+        }
+        at += bytes;
+        if end {
+            read_at(&mut f, &path, pending.take(), &mut buf, &mut keep, out)?;
+            out[run_from..].sort_unstable_by_key(|p| p.index);
+            run_from = out.len();
+        }
+    }
+    read_at(&mut f, &path, pending, &mut buf, &mut keep, out)?;
+    out[run_from..].sort_unstable_by_key(|p| p.index);
+    Ok(())
+}
+
+/// Decodes the byte range `range` (first byte, bytes) of `f`, if any.
+fn read_at(
+    f: &mut File,
+    path: &Path,
+    range: Option<(u64, u64)>,
+    buf: &mut Vec<u8>,
+    keep: &mut impl FnMut(u64, DVec3, bool) -> bool,
+    out: &mut Vec<TilePoint>,
+) -> Result<(), TilingError> {
+    let Some((from, size)) = range else {
+        return Ok(());
+    };
+    f.seek(SeekFrom::Start(from)).map_err(|e| err(path, e))?;
+    decode_range(f, path, size, buf, keep, out)
 }
 
 /// One finished point.
@@ -414,7 +655,7 @@ mod tests {
     #[test]
     fn spill_and_results_round_trip_and_merge_in_index_order() {
         let dir = tempfile::tempdir().unwrap();
-        let mut w = SpillWriter::create(dir.path(), 2).unwrap();
+        let mut w = SpillWriter::create(dir.path(), 2, &Aabb::empty(), 1 << 20).unwrap();
         let a = DVec3::new(1.0, 2.0, 3.0);
         w.push(0, &point(5, a, true, false)).unwrap();
         w.push(1, &point(5, a, false, false)).unwrap();
@@ -440,11 +681,104 @@ mod tests {
         assert_eq!(got, vec![0, 1, 3, 4, 7, 9]);
     }
 
+    /// One tile of `n` records at random positions, a quarter of them halo copies, some at one
+    /// duplicated position, written with `memory` bytes of buffer.
+    fn scattered_tile(dir: &Path, n: u64, memory: u64) {
+        let bounds = Aabb {
+            min: DVec3::ZERO,
+            max: DVec3::splat(10.0),
+        };
+        let mut w = SpillWriter::create(dir, 1, &bounds, memory).unwrap();
+        let mut x = 0x9e37_79b9_7f4a_7c15u64;
+        let mut rnd = move || {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            (x >> 11) as f64 / (1u64 << 53) as f64 * 10.0
+        };
+        for index in 0..n {
+            let i = (index * 7919) % n;
+            let p = if i.is_multiple_of(97) {
+                DVec3::splat(5.0)
+            } else {
+                DVec3::new(rnd(), rnd(), rnd())
+            };
+            w.push(
+                0,
+                &point(index, p, !i.is_multiple_of(4), i.is_multiple_of(5)),
+            )
+            .unwrap();
+        }
+        w.finish().unwrap();
+    }
+
+    #[test]
+    fn issue16_reads_by_block_keep_exactly_the_owned_points_a_whole_read_keeps() {
+        let n = 40_000u64;
+        // 64 KiB of buffer: 20 sorted runs; 32 MiB: one.
+        for memory in [64 << 10, 32 << 20] {
+            let dir = tempfile::tempdir().unwrap();
+            scattered_tile(dir.path(), n, memory);
+            let table = std::fs::read(blocks_path(dir.path(), 0)).unwrap();
+            assert!(table.len() / BLOCK_ENTRY > 100, "{} blocks", table.len());
+            let mut whole = Vec::new();
+            read_spill(dir.path(), 0, |_, _, _| true, &mut whole).unwrap();
+            assert_eq!(whole.len(), n as usize);
+            assert!(whole.windows(2).all(|w| w[0].index < w[1].index));
+            let spans = [
+                (DVec3::splat(4.0), DVec3::splat(6.0)),
+                (DVec3::new(0.0, 9.0, 0.0), DVec3::new(10.0, 10.0, 0.5)),
+                (DVec3::splat(5.0), DVec3::splat(5.0)),
+                (DVec3::splat(-3.0), DVec3::splat(-1.0)),
+                (DVec3::splat(-1.0), DVec3::splat(11.0)),
+            ];
+            for (lo, hi) in spans {
+                let span = Aabb { min: lo, max: hi };
+                let inside = |p: DVec3| (0..3).all(|a| p[a] >= lo[a] && p[a] <= hi[a]);
+                let mut want = Vec::new();
+                read_spill(dir.path(), 0, |_, p, halo| !halo && inside(p), &mut want).unwrap();
+                let mut seen = 0;
+                let mut got = vec![point(u64::MAX, DVec3::ZERO, true, true)];
+                let keep = |p| {
+                    seen += 1;
+                    inside(p)
+                };
+                read_owned_near(dir.path(), 0, &span, keep, &mut got).unwrap();
+                assert_eq!(got[1..], want[..], "{span:?}");
+                // One sorted run reads a small span's blocks only (under a third of the 30 000
+                // owned records for a span of 1 % of the volume or less).
+                if memory > 1 << 20 && hi.x - lo.x < 5.0 {
+                    assert!(seen < n as usize / 4, "read {seen} records for {span:?}");
+                }
+            }
+            // Without a table the whole file is read, with the same result.
+            let span = Aabb {
+                min: DVec3::splat(2.0),
+                max: DVec3::splat(3.0),
+            };
+            let inside = |p: DVec3| (0..3).all(|a| p[a] >= 2.0 && p[a] <= 3.0);
+            let mut with = Vec::new();
+            read_owned_near(dir.path(), 0, &span, inside, &mut with).unwrap();
+            std::fs::remove_file(blocks_path(dir.path(), 0)).unwrap();
+            let mut without = Vec::new();
+            read_owned_near(dir.path(), 0, &span, inside, &mut without).unwrap();
+            assert_eq!(with, without);
+            assert!(!with.is_empty());
+            // A table that does not describe the file is refused.
+            let short = &table[..table.len() - BLOCK_ENTRY];
+            std::fs::write(blocks_path(dir.path(), 0), short).unwrap();
+            assert!(matches!(
+                read_owned_near(dir.path(), 0, &span, inside, &mut without),
+                Err(TilingError::Corrupt { .. })
+            ));
+        }
+    }
+
     #[test]
     fn more_tiles_than_open_files_merge_in_levels() {
         let dir = tempfile::tempdir().unwrap();
         let tiles = MAX_OPEN * 2 + 3;
-        let mut w = SpillWriter::create(dir.path(), tiles).unwrap();
+        let mut w = SpillWriter::create(dir.path(), tiles, &Aabb::empty(), 1 << 20).unwrap();
         for t in 0..tiles {
             w.push(t, &point(t as u64, DVec3::ONE, true, false))
                 .unwrap();

@@ -7,6 +7,7 @@
 //!  pid                  "<pid> <pid namespace> <boot id>": the owner (temporary directories)
 //!  plan.json            the plan (pass 1); a different plan invalidates every other file
 //!  tile_<t>.pts         spill file of tile t (pass 2, see super::spill)
+//!  tile_<t>.blk         its block table: the box of each block of owned records
 //!  occupancy.json       the partition pass's occupancy grid (saved before the marker)
 //!  spill.done           the partition is committed (holds the bytes spilled)
 //!  globals.json         the global scalars (the pre-pass), when the method needs them
@@ -50,6 +51,11 @@ pub const GLOBALS_FILE: &str = "globals.json";
 /// The spill file of tile `t` in `dir`.
 pub fn spill_path(dir: &Path, t: usize) -> PathBuf {
     dir.join(format!("tile_{t:05}.pts"))
+}
+
+/// The block table of tile `t`'s spill file in `dir` (see [`super::spill`]).
+pub fn blocks_path(dir: &Path, t: usize) -> PathBuf {
+    dir.join(format!("tile_{t:05}.blk"))
 }
 
 /// The result file of tile `t` in `dir`.

@@ -11,7 +11,7 @@
 //!
 //! ```text
 //!  phase       tasks          task I of N does                     commits
-//!  partition   1              the spill pass (index 0)             tile_<t>.pts, spill.done
+//!  partition   1              the spill pass (index 0)             tile_<t>.pts, .blk, spill.done
 //!  globals     tiles or 0     tile t's partial sums, t ≡ I mod N   globals_<t>.json
 //!  tiles       tiles          tile t, t ≡ I mod N                  tile_<t>.res, tile_<t>.json
 //!  stitch      1              the output, in the work dir (I = 0)  output.<ext>, stitch.json

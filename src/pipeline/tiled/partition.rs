@@ -17,6 +17,11 @@ use crate::tiling::workdir::WorkDir;
 /// empty, coarse enough that a ball of the radius visits at most 10³ cells.
 const CELLS_PER_RADIUS: f64 = 4.0;
 
+/// The spill buffers hold at most 1 / `SPILL_SHARE` of the memory budget: no kernel runs during
+/// the partition, and each buffer is written as one sorted run of blocks, so longer buffers give
+/// halo growth smaller blocks to read ([`crate::tiling::spill`]).
+const SPILL_SHARE: u64 = 4;
+
 /// A committed partition.
 #[derive(Debug, Clone)]
 pub struct Partition {
@@ -90,7 +95,13 @@ fn spill(
 ) -> Result<(u64, Option<Occupancy>), PipelineError> {
     let tiling_err = |e| PipelineError::tiling(&job.input, e);
     let selection = Selection::of(job, crate::io::open(&job.input, job.input_format)?.info())?;
-    let mut spill = SpillWriter::create(work.path(), plan.tiles.len()).map_err(tiling_err)?;
+    let mut spill = SpillWriter::create(
+        work.path(),
+        plan.tiles.len(),
+        &plan.bounds,
+        opts.memory_budget / SPILL_SHARE,
+    )
+    .map_err(tiling_err)?;
     let mut near = Vec::new();
     let mut occupancy = plan
         .isolation
