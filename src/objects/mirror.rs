@@ -50,9 +50,10 @@ pub fn is_base(name: &str) -> bool {
 
 /// What a task of `phase` reads, by object name: the small files every phase reads, plus
 /// - partition: the input;
-/// - globals: every spill file and every tile's partial sums;
-/// - tiles: the same and the spill files' block tables (halo growth reads by block), and the
-///   results and outcomes of the task's own tiles (`own`, to skip the committed ones);
+/// - globals: every spill file with its block table (halo growth reads by block) and every
+///   tile's partial sums;
+/// - tiles: the same, and the results and outcomes of the task's own tiles (`own`, to skip the
+///   committed ones);
 /// - stitch: every result and outcome, and the input (not the spill files).
 pub fn wanted(phase: Phase, name: &str, own: &dyn Fn(usize) -> bool) -> bool {
     if is_base(name) {
@@ -65,7 +66,7 @@ pub fn wanted(phase: Phase, name: &str, own: &dyn Fn(usize) -> bool) -> bool {
     let partial = name.starts_with("globals_") && name.ends_with(".json");
     match phase {
         Phase::Partition => input,
-        Phase::Globals => tile(".pts").is_some() || partial,
+        Phase::Globals => tile(".pts").is_some() || tile(".blk").is_some() || partial,
         Phase::Tiles => {
             tile(".pts").is_some()
                 || tile(".blk").is_some()
@@ -281,6 +282,7 @@ mod tests {
         assert!(wanted(Phase::Partition, "input/a.las", &own));
         assert!(!wanted(Phase::Partition, "tile_00001.pts", &own));
         assert!(wanted(Phase::Globals, "tile_00001.pts", &own));
+        assert!(wanted(Phase::Globals, "tile_00001.blk", &own));
         assert!(wanted(Phase::Tiles, "tile_00001.blk", &own));
         assert!(!wanted(Phase::Stitch, "tile_00001.blk", &own));
         assert!(!wanted(Phase::Globals, "input/a.las", &own));
