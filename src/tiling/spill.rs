@@ -134,6 +134,7 @@ impl SpillWriter {
         let buf = &self.buffers[t];
         self.keys.clear();
         const PLACE: u64 = (1 << 16) - 1;
+        debug_assert!(buf.len() <= MAX_TILE_BUFFER, "a place must fit PLACE");
         for (i, rec) in buf.chunks_exact(SPILL_RECORD).enumerate() {
             let (raw, p) = decode_spill(rec);
             // 47 bits of Morton code (almost 16 per axis) are plenty for blocks of 256.
