@@ -98,6 +98,7 @@ fn plan(a: PlanArgs) -> Result<()> {
         spec: a.run.spec.resolve(config.outlier_alpha)?,
         memory_budget: a.run.memory_budget.unwrap_or(config.memory_budget).as_u64(),
         tile_points: a.run.tile_points,
+        part_points: a.run.part_points,
         stored_as: None,
     };
     let hooks = scaleout::Hooks {
@@ -401,6 +402,7 @@ fn denoise(a: DenoiseArgs) -> Result<()> {
         memory_budget: a.run.memory_budget.unwrap_or(config.memory_budget).as_u64(),
         temp_dir: a.temp_dir.clone().or_else(|| config.temp_dir()),
         tile_points: a.run.tile_points,
+        part_points: a.run.part_points,
         progress: progress.clone(),
         cancel,
         work_dir: None,

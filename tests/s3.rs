@@ -230,7 +230,10 @@ fn run_job(
             "-q",
         ]);
     };
-    worker("partition", 0, 1);
+    assert!(tasks["partition"] >= 3, "{planned}");
+    for i in shuffled(n, n + 2) {
+        worker("partition", i, n);
+    }
     for i in shuffled(n, n) {
         worker("globals", i, n);
     }

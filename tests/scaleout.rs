@@ -35,8 +35,16 @@ pub fn surface(path: &Path, n: usize) {
         .unwrap();
 }
 
-/// The flags every run of these tests shares (several tiles; outliers flagged).
-pub const FLAGS: [&str; 4] = ["--tile-points", "1500", "--outliers", "classify"];
+/// The flags every run of these tests shares (several tiles and partition parts; outliers
+/// flagged).
+pub const FLAGS: [&str; 6] = [
+    "--tile-points",
+    "1500",
+    "--part-points",
+    "5000",
+    "--outliers",
+    "classify",
+];
 
 /// Runs `qemd ARGS`, asserts it succeeded and returns its standard output.
 pub fn ok(args: &[&str]) -> String {
@@ -105,7 +113,7 @@ fn issue11_tasks_in_any_number_and_order_write_the_denoise_bytes() {
         let tasks = plan(&input, &work);
         let tiles = tasks["tiles"].as_u64().unwrap();
         assert!(tiles >= 6, "{tasks}");
-        assert_eq!(tasks["partition"], 1);
+        assert_eq!(tasks["partition"], 3, "12 000 points in parts of 5000");
         assert_eq!(tasks["stitch"], 1);
         assert_eq!(
             tasks["globals"], tiles,
@@ -113,7 +121,9 @@ fn issue11_tasks_in_any_number_and_order_write_the_denoise_bytes() {
         );
         // Planning again changes nothing.
         assert_eq!(plan(&input, &work), tasks);
-        worker(&work, "partition", 0, 1);
+        for i in shuffled(n, n + 2) {
+            worker(&work, "partition", i, n);
+        }
         for i in shuffled(n, n) {
             worker(&work, "globals", i, n);
         }
@@ -341,9 +351,9 @@ fn issue11_partition_and_stitch_killed_midway_rerun_to_the_same_bytes() {
     let work = d.path().join("work");
     plan(&input, &work);
 
-    // Partition: killed once spill files exist and before its commit marker.
+    // Partition: killed once a part is committed and before the partition is.
     let killed = kill_midway(&work, "partition", |names| {
-        names.iter().any(|n| n.ends_with(".pts")) && !names.iter().any(|n| n == "spill.done")
+        names.iter().any(|n| n.starts_with("part_")) && !names.iter().any(|n| n == "spill.done")
     });
     assert!(killed, "the partition ended before it could be killed");
     let st: serde_json::Value =

@@ -350,10 +350,12 @@ fn arrays_give_the_denoise_bytes(input: &Path, flags: &[&str], n: u64, copies: u
     let d = tempfile::tempdir().unwrap();
     let mut job = SlurmJob::new(d.path(), input, flags);
     let phases = job.submit_all(n, copies);
-    assert!(
-        phases.iter().any(|p| p.phase == "tiles" && p.n > 1),
-        "the test wants several tile tasks"
-    );
+    for phase in ["partition", "tiles"] {
+        assert!(
+            phases.iter().any(|p| p.phase == phase && p.n > 1),
+            "the test wants several {phase} tasks"
+        );
+    }
     // The reference runs while the cluster works.
     let want = job.reference();
     job.wait_completed(&phases.last().unwrap().ids);
@@ -370,13 +372,21 @@ fn lidar(name: &str) -> PathBuf {
         .join(name)
 }
 
-/// The flags of the LAS runs: 8 tiles of the 23 875 points, outliers classified.
-const LAS_FLAGS: [&str; 4] = ["--tile-points", "3000", "--outliers", "classify"];
+/// The flags of the LAS runs: 8 tiles and 3 partition parts of the 23 875 points, outliers
+/// classified.
+const LAS_FLAGS: [&str; 6] = [
+    "--tile-points",
+    "3000",
+    "--part-points",
+    "10000",
+    "--outliers",
+    "classify",
+];
 
 #[test]
 #[ignore = "needs SLURM (.ci/run starts it) and ../shared"]
 fn issue11_slurm_arrays_on_a_las_file_write_the_denoise_bytes() {
-    // Every phase as the plan reports it: 1 partition task, 8 globals, 8 tiles, 1 stitch.
+    // Every phase as the plan reports it: 3 partition tasks, 8 globals, 8 tiles, 1 stitch.
     arrays_give_the_denoise_bytes(&lidar("4_6_crop.las"), &LAS_FLAGS, u64::MAX, 1);
 }
 
@@ -397,8 +407,15 @@ fn issue11_slurm_arrays_on_a_generated_cloud_write_the_denoise_bytes() {
     let d = tempfile::tempdir().unwrap();
     let input = d.path().join("cloud.ply");
     surface(&input, CLOUD_POINTS);
-    // About 12 tiles in arrays of 4 tasks: each task takes every 4th tile.
-    let flags = ["--tile-points", "100000", "--outliers", "classify"];
+    // About 12 tiles and 4 partition parts in arrays of 4 tasks: each task takes every 4th.
+    let flags = [
+        "--tile-points",
+        "100000",
+        "--part-points",
+        "250000",
+        "--outliers",
+        "classify",
+    ];
     arrays_give_the_denoise_bytes(&input, &flags, 4, 1);
 }
 

@@ -20,6 +20,7 @@ mod k8s;
 mod knn_bounds;
 mod normals;
 mod operator;
+mod partition;
 mod raw_bin;
 mod real_data;
 mod reliability;

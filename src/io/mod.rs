@@ -512,6 +512,18 @@ pub trait Source: Send {
     /// Truncated or malformed data.
     fn read_batch(&mut self, batch: &mut PointBatch, max: usize) -> Result<usize, IoError>;
 
+    /// Moves to point `index` (at most the count), so that the next batch starts there, when
+    /// the format can without reading the points before it (fixed-size records, a LAZ chunk
+    /// table of fixed-size chunks). Returns false, having moved nothing, when it cannot: the
+    /// caller reads from the start. A range read this way is a task of a parallel partition.
+    ///
+    /// # Errors
+    /// Seek failures, bad LAZ data.
+    fn seek_point(&mut self, index: u64) -> Result<bool, IoError> {
+        let _ = index;
+        Ok(false)
+    }
+
     /// Reads what follows the points and returns it; call after the last batch.
     ///
     /// # Errors

@@ -191,6 +191,7 @@ impl Jobs {
             memory_budget: spec.memory_budget,
             temp_dir: None,
             tile_points: spec.tile_points,
+            part_points: None,
             progress: running.progress.clone(),
             cancel: running.cancel.clone(),
             work_dir: Some(dir.join("work")),

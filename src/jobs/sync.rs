@@ -74,6 +74,7 @@ impl Jobs {
                 // Only a body larger than the memory budget, or E57/COPC output, is spooled here.
                 temp_dir: Some(tmp),
                 tile_points: None,
+                part_points: None,
                 progress: Arc::new(NoProgress),
                 cancel,
                 work_dir: None,

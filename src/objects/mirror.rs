@@ -22,6 +22,19 @@ fn is_marker(name: &str) -> bool {
     use crate::tiling::workdir::{GLOBALS_FILE, PARTITION_DONE};
     [JOB_FILE, STITCH_DONE, PARTITION_DONE, GLOBALS_FILE].contains(&name)
         || (name.starts_with("tile_") && name.ends_with(".json"))
+        || is_part_marker(name)
+}
+
+/// A partition part's file (`part_<p>/…`), by the name under the part's directory.
+fn in_part(name: &str) -> Option<&str> {
+    let (dir, file) = name.split_once('/')?;
+    let p = dir.strip_prefix("part_")?;
+    (!p.is_empty() && p.bytes().all(|b| b.is_ascii_digit())).then_some(file)
+}
+
+/// A committed part's marker (`part_<p>/part.json`).
+fn is_part_marker(name: &str) -> bool {
+    in_part(name) == Some(crate::tiling::workdir::PART_DONE)
 }
 
 /// Files that stay in the scratch directory: locks and the owner file (local coordination),
@@ -49,9 +62,10 @@ pub fn is_base(name: &str) -> bool {
 }
 
 /// What a task of `phase` reads, by object name: the small files every phase reads, plus
-/// - partition: the input;
-/// - globals: every spill file with its block table (halo growth reads by block) and every
-///   tile's partial sums;
+/// - partition: the input, and the parts' markers (to skip committed parts);
+/// - globals: every part's files, i.e. every spill file with its block table (halo growth
+///   reads by block), the parts' occupancy grids and markers (a task that finds the partition
+///   not committed but all its parts commits it), and every tile's partial sums;
 /// - tiles: the same, and the results and outcomes of the task's own tiles (`own`, to skip the
 ///   committed ones);
 /// - stitch: every result and outcome, and the input (not the spill files).
@@ -64,15 +78,12 @@ pub fn wanted(phase: Phase, name: &str, own: &dyn Fn(usize) -> bool) -> bool {
         name.strip_prefix("tile_")?.strip_suffix(ext)?.parse().ok()
     };
     let partial = name.starts_with("globals_") && name.ends_with(".json");
+    let part = in_part(name).is_some();
     match phase {
-        Phase::Partition => input,
-        Phase::Globals => tile(".pts").is_some() || tile(".blk").is_some() || partial,
+        Phase::Partition => input || is_part_marker(name),
+        Phase::Globals => part || partial,
         Phase::Tiles => {
-            tile(".pts").is_some()
-                || tile(".blk").is_some()
-                || partial
-                || tile(".res").is_some_and(own)
-                || tile(".json").is_some_and(own)
+            part || partial || tile(".res").is_some_and(own) || tile(".json").is_some_and(own)
         }
         Phase::Stitch => input || tile(".res").is_some() || tile(".json").is_some(),
     }
@@ -280,11 +291,20 @@ mod tests {
             assert!(!wanted(p, "stitch.json", &own));
         }
         assert!(wanted(Phase::Partition, "input/a.las", &own));
-        assert!(!wanted(Phase::Partition, "tile_00001.pts", &own));
-        assert!(wanted(Phase::Globals, "tile_00001.pts", &own));
-        assert!(wanted(Phase::Globals, "tile_00001.blk", &own));
-        assert!(wanted(Phase::Tiles, "tile_00001.blk", &own));
-        assert!(!wanted(Phase::Stitch, "tile_00001.blk", &own));
+        assert!(wanted(Phase::Partition, "part_0002/part.json", &own));
+        assert!(!wanted(Phase::Partition, "part_0002/tile_00001.pts", &own));
+        assert!(!wanted(Phase::Partition, "part_0002/occupancy.json", &own));
+        for n in [
+            "part_0000/tile_00001.pts",
+            "part_0011/tile_00001.blk",
+            "part_0002/occupancy.json",
+            "part_0002/part.json",
+        ] {
+            assert!(wanted(Phase::Globals, n, &own), "{n}");
+            assert!(wanted(Phase::Tiles, n, &own), "{n}");
+            assert!(!wanted(Phase::Stitch, n, &own), "{n}");
+        }
+        assert!(!wanted(Phase::Tiles, "part_x/tile_00001.pts", &own));
         assert!(!wanted(Phase::Globals, "input/a.las", &own));
         assert!(wanted(Phase::Tiles, "tile_00003.res", &own));
         assert!(wanted(Phase::Tiles, "tile_00003.json", &own));
@@ -293,7 +313,13 @@ mod tests {
         assert!(wanted(Phase::Stitch, "tile_00004.res", &own));
         assert!(!wanted(Phase::Stitch, "tile_00004.pts", &own));
         assert!(wanted(Phase::Stitch, "input/a.las", &own));
-        for m in ["job.json", "stitch.json", "spill.done", "tile_00002.json"] {
+        for m in [
+            "job.json",
+            "stitch.json",
+            "spill.done",
+            "tile_00002.json",
+            "part_0001/part.json",
+        ] {
             assert!(is_marker(m), "{m}");
         }
         for d in [
@@ -301,10 +327,19 @@ mod tests {
             "tile_00002.pts",
             "output.las",
             "globals_00001.json",
+            "part_0001/occupancy.json",
+            "part_0001/tile_00002.pts",
         ] {
             assert!(!is_marker(d), "{d}");
         }
-        for l in ["stitch.lock", ".tmpAbc", "merge_1_00002.res", "pid"] {
+        for l in [
+            "stitch.lock",
+            "partition_0003.lock",
+            ".tmpAbc",
+            ".part_0003.tmp/tile_00001.pts",
+            "merge_1_00002.res",
+            "pid",
+        ] {
             assert!(is_local(l), "{l}");
         }
     }

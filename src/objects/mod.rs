@@ -194,14 +194,20 @@ pub fn run_task(
         Phase::Stitch => m.remote(layout::STITCH_DONE).is_some(),
         Phase::Globals | Phase::Tiles => false,
     };
-    if committed && task.index == 0 {
-        // A single-task phase already committed in the store: nothing to download.
+    let mine = match phase {
+        Phase::Partition => {
+            worker::assigned(task.index, task.of, job.plan.parts() as usize).count()
+        }
+        _ => usize::from(task.index == 0),
+    } as u64;
+    if committed && mine > 0 {
+        // A phase already committed in the store: nothing to download.
         return Ok(TaskReport {
             phase,
             task,
-            assigned: 1,
+            assigned: mine,
             done: 0,
-            skipped: 1,
+            skipped: mine,
             wall_s: 0.0,
         });
     }
@@ -276,7 +282,10 @@ pub fn status(work: &WorkUrl) -> Result<Status, ObjectsError> {
     };
     let never = || false;
     m.pull(
-        |n| n.ends_with(".json") || n == crate::tiling::workdir::PARTITION_DONE,
+        |n| {
+            (n.ends_with(".json") && !n.ends_with(crate::tiling::workdir::OCCUPANCY_FILE))
+                || n == crate::tiling::workdir::PARTITION_DONE
+        },
         &never,
     )?;
     m.stand_ins(|n| n.ends_with(".res") || n.starts_with("output."))?;

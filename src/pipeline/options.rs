@@ -17,6 +17,9 @@ pub struct RunOptions {
     pub temp_dir: Option<PathBuf>,
     /// Forces tiling with about this many points per tile.
     pub tile_points: Option<u64>,
+    /// Input records per partition part of a tiled run (default
+    /// [`crate::pipeline::tiled::plan::PART_POINTS`]); only the speed depends on it.
+    pub part_points: Option<u64>,
     /// Receives phase and progress updates.
     pub progress: Arc<dyn Progress>,
     /// Set to stop the run at the next batch or tile.
@@ -36,6 +39,7 @@ impl Default for RunOptions {
             memory_budget: DEFAULT_MEMORY_BUDGET,
             temp_dir: None,
             tile_points: None,
+            part_points: None,
             progress: Arc::new(NoProgress),
             cancel: Arc::new(AtomicBool::new(false)),
             work_dir: None,
@@ -49,6 +53,7 @@ impl std::fmt::Debug for RunOptions {
             .field("memory_budget", &self.memory_budget)
             .field("temp_dir", &self.temp_dir)
             .field("tile_points", &self.tile_points)
+            .field("part_points", &self.part_points)
             .field("work_dir", &self.work_dir)
             .finish()
     }

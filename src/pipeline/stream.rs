@@ -31,3 +31,31 @@ pub(crate) fn stream(
     }
     Ok(src.finish()?)
 }
+
+/// Streams the points of `range` (record numbers) of the job's input through `f`, with
+/// cancellation checks (progress is the caller's: ranges run side by side), for a format that
+/// can seek ([`Source::seek_point`]); `Ok(false)` without reading when it cannot.
+pub(crate) fn stream_range(
+    job: &Job,
+    opts: &RunOptions,
+    range: std::ops::Range<u64>,
+    mut f: impl FnMut(&PointBatch) -> Result<(), PipelineError>,
+) -> Result<bool, PipelineError> {
+    let mut src: Box<dyn Source> = io::open(&job.input, job.input_format)?;
+    if !src.seek_point(range.start)? {
+        return Ok(false);
+    }
+    let mut batch = PointBatch::with_capacity(src.info().schema.record_len, BATCH);
+    let mut at = range.start;
+    while at < range.end {
+        let max = usize::try_from(range.end - at).map_or(BATCH, |left| left.min(BATCH));
+        let n = src.read_batch(&mut batch, max)?;
+        if n == 0 {
+            break;
+        }
+        opts.check_cancel()?;
+        f(&batch)?;
+        at += n as u64;
+    }
+    Ok(true)
+}

@@ -603,6 +603,7 @@ fn load_where(
     for other in touching(plan, span) {
         read_owned_near(
             dir,
+            plan.parts(),
             other,
             span,
             |p| {

@@ -185,9 +185,8 @@ impl TileBudget<'_> {
 /// # Errors
 /// Spill read failures.
 pub fn load_tile(dir: &Path, plan: &Plan, t: usize) -> Result<Vec<TilePoint>, TilingError> {
-    let _ = plan;
     let mut pts = Vec::new();
-    read_spill(dir, t, |_, _, _| true, &mut pts)?;
+    read_spill(dir, plan.parts(), t, |_, _, _| true, &mut pts)?;
     Ok(pts)
 }
 

@@ -185,6 +185,24 @@ impl Occupancy {
         }
     }
 
+    /// Adds the counts of `other` (a grid of the same base cells and corner, counted over other
+    /// points): the grid one pass over both sets of points would have counted, because a pass
+    /// ends at the finest level at which its points fit [`MAX_CELLS`], and a subset never
+    /// needs a coarser level than the whole.
+    pub fn merge(&mut self, other: &Occupancy) {
+        debug_assert!(self.base == other.base && self.origin == other.origin);
+        while self.level < other.level {
+            self.coarsen();
+        }
+        let shift = self.level - other.level;
+        for (k, &n) in &other.counts {
+            *self.counts.entry(k.map(|c| c >> shift)).or_insert(0) += n;
+        }
+        while self.counts.len() > MAX_CELLS {
+            self.coarsen();
+        }
+    }
+
     /// Doubles the cell size, merging counts exactly (a cell's parent is its key shifted right
     /// by one, as [`Occupancy::key`] computes it).
     pub(crate) fn coarsen(&mut self) {

@@ -93,9 +93,27 @@ pub struct Plan {
     /// ([`crate::denoise::isolation::cap`]).
     #[serde(default)]
     pub short_lists: bool,
+    /// Partition parts: ranges of input records partitioned side by side, each its own task
+    /// ([`Plan::part_range`]); 1 for a format that cannot seek to a record. 0 in plans written
+    /// before there were parts, which therefore never equal a plan of today.
+    #[serde(default)]
+    pub parts: u64,
 }
 
 impl Plan {
+    /// Partition parts (at least 1).
+    pub fn parts(&self) -> u64 {
+        self.parts.max(1)
+    }
+
+    /// The input records part `part` of [`Plan::parts`] reads: equal shares of every record read
+    /// (finite or not), in order.
+    pub fn part_range(&self, part: u64) -> std::ops::Range<u64> {
+        let (n, p) = (u128::from(self.points), u128::from(self.parts()));
+        let at = |i: u64| u64::try_from(n * u128::from(i) / p).unwrap_or(self.points);
+        at(part)..at(part + 1)
+    }
+
     /// The tile that owns `p` (a finite point).
     pub fn owner(&self, p: DVec3) -> usize {
         let mut at = 0;
@@ -350,6 +368,7 @@ impl Planner {
                 halo,
                 isolation,
                 short_lists: false,
+                parts: 1,
             }
         };
         let target = target.max(1);

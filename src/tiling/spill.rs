@@ -12,8 +12,10 @@
 //!                        64 bytes, only when the run writes normals (`--write-normals`)
 //! ```
 //!
-//! The partition pass appends a tile's records a buffer at a time, in global-index order across
-//! buffers; each buffer (a *run*) is written owned records first, in Morton order over the
+//! Spill files and block tables live in the directory of the partition part that wrote them
+//! (`part_<p>/`, see [`super::workdir`]): a tile has one of each per part, and readers read the
+//! parts in order. Each part appends a tile's records a buffer at a time, in global-index order
+//! across buffers; each buffer (a *run*) is written owned records first, in Morton order over the
 //! cloud's bounds and cut into blocks of [`SPILL_BLOCK`] records, then the halo copies as one
 //! block, present even when empty and flagged `RUN_END`. The block table gives each block's
 //! record count and the box of its owned points (empty for the halo block), so halo
@@ -32,7 +34,7 @@ use glam::DVec3;
 use rayon::prelude::*;
 
 use super::TilingError;
-use super::workdir::{blocks_path, merge_path, result_path, spill_path};
+use super::workdir::{blocks_path, merge_path, part_dir, result_path, spill_path};
 use crate::io::AtomicFile;
 use crate::neighbours::MortonGrid;
 use crate::points::{Aabb, PointNormal};
@@ -242,14 +244,18 @@ pub struct TilePoint {
     pub held: bool,
 }
 
-/// Records in tile `t`'s spill file: exactly the points its first load holds.
+/// Records in tile `t`'s spill files (one in each of the `parts` part directories of the work
+/// directory `dir`): exactly the points its first load holds.
 ///
 /// # Errors
-/// The file's metadata cannot be read.
-pub fn spilled_points(dir: &Path, t: usize) -> Result<u64, TilingError> {
-    let path = spill_path(dir, t);
-    let len = std::fs::metadata(&path).map_err(|e| err(&path, e))?.len();
-    Ok(len / SPILL_RECORD as u64)
+/// A file's metadata cannot be read.
+pub fn spilled_points(dir: &Path, parts: u64, t: usize) -> Result<u64, TilingError> {
+    let mut n = 0;
+    for part in 0..parts {
+        let path = spill_path(&part_dir(dir, part), t);
+        n += std::fs::metadata(&path).map_err(|e| err(&path, e))?.len() / SPILL_RECORD as u64;
+    }
+    Ok(n)
 }
 
 /// A spill record's raw index word and position.
@@ -259,9 +265,10 @@ fn decode_spill(rec: &[u8]) -> (u64, DVec3) {
     (raw, DVec3::new(f(8), f(16), f(24)))
 }
 
-/// Opens tile `t`'s spill file; returns it with its length in bytes.
-fn open_spill(dir: &Path, t: usize) -> Result<(File, PathBuf, u64), TilingError> {
-    let path = spill_path(dir, t);
+/// Opens tile `t`'s spill file in the part directory `part`; returns it with its length in
+/// bytes.
+fn open_spill(part: &Path, t: usize) -> Result<(File, PathBuf, u64), TilingError> {
+    let path = spill_path(part, t);
     let f = File::open(&path).map_err(|e| err(&path, e))?;
     let len = f.metadata().map_err(|e| err(&path, e))?.len();
     if len % SPILL_RECORD as u64 != 0 {
@@ -312,19 +319,24 @@ fn decode_range(
     Ok(())
 }
 
-/// Reads tile `t`'s spill file; `keep` filters the records by (index, position, is_halo). The
-/// records it keeps are appended in global-index order.
+/// Reads tile `t`'s spill files (one in each of the `parts` part directories of `dir`); `keep`
+/// filters the records by (index, position, is_halo). The records it keeps are appended in
+/// global-index order.
 ///
 /// # Errors
 /// Read failures, a file whose length is not a whole number of records, a block table that
-/// does not describe the file.
+/// does not describe its file.
 pub fn read_spill(
     dir: &Path,
+    parts: u64,
     t: usize,
-    keep: impl FnMut(u64, DVec3, bool) -> bool,
+    mut keep: impl FnMut(u64, DVec3, bool) -> bool,
     out: &mut Vec<TilePoint>,
 ) -> Result<(), TilingError> {
-    read_blocks(dir, t, |_| true, keep, out)
+    for part in 0..parts {
+        read_blocks(&part_dir(dir, part), t, |_| true, &mut keep, out)?;
+    }
+    Ok(())
 }
 
 /// Reads the owned records of tile `t`'s spill file that `keep` accepts, where `keep` accepts
@@ -336,6 +348,7 @@ pub fn read_spill(
 /// Read failures, a block table that does not describe the file.
 pub fn read_owned_near(
     dir: &Path,
+    parts: u64,
     t: usize,
     span: &Aabb,
     mut keep: impl FnMut(DVec3) -> bool,
@@ -357,36 +370,35 @@ pub fn read_owned_near(
         ),
     );
     let meets = |b: &Aabb| (0..3).all(|a| b.min[a] <= hi[a] && b.max[a] >= lo[a]);
-    read_blocks(dir, t, meets, |_, p, halo| !halo && keep(p), out)
+    for part in 0..parts {
+        read_blocks(
+            &part_dir(dir, part),
+            t,
+            meets,
+            |_, p, halo| !halo && keep(p),
+            out,
+        )?;
+    }
+    Ok(())
 }
 
-/// Reads the blocks of tile `t`'s spill file that `select` picks by their box (a halo block's
-/// is empty), keeping the records `keep` accepts, and appends them in global-index order. Each
-/// buffer the partition wrote is a run of an index range above the previous run's (the input
-/// streams in index order), ending with its halo block, so sorting each run's records by index
-/// orders them all. Without a
-/// table (a partition written before there were tables) the whole file is read and sorted.
+/// Reads the blocks of tile `t`'s spill file in the part directory `part` that `select` picks
+/// by their box (a halo block's is empty), keeping the records `keep` accepts, and appends them
+/// in global-index order. Each buffer the partition wrote is a run of an index range above the
+/// previous run's (a part streams its range of the input in index order), ending with its halo
+/// block, so sorting each run's records by index orders them all; parts cover increasing
+/// ranges, so reading them in order keeps the order.
 fn read_blocks(
-    dir: &Path,
+    part: &Path,
     t: usize,
     select: impl Fn(&Aabb) -> bool,
     mut keep: impl FnMut(u64, DVec3, bool) -> bool,
     out: &mut Vec<TilePoint>,
 ) -> Result<(), TilingError> {
-    let (mut f, path, len) = open_spill(dir, t)?;
+    let (mut f, path, len) = open_spill(part, t)?;
     let mut buf = Vec::new();
-    let table_path = blocks_path(dir, t);
-    let table = match std::fs::read(&table_path) {
-        Ok(table) => table,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
-            let from = out.len();
-            decode_range(&mut f, &path, len, &mut buf, &mut keep, out)?;
-            // A tile's file holds each point at most once, so the order is total.
-            out[from..].sort_unstable_by_key(|p| p.index);
-            return Ok(());
-        }
-        Err(e) => return Err(err(&table_path, e)),
-    };
+    let table_path = blocks_path(part, t);
+    let table = std::fs::read(&table_path).map_err(|e| err(&table_path, e))?;
     let corrupt = |detail: String| TilingError::Corrupt {
         path: table_path.clone(),
         detail,
@@ -656,7 +668,9 @@ mod tests {
     #[test]
     fn spill_and_results_round_trip_and_merge_in_index_order() {
         let dir = tempfile::tempdir().unwrap();
-        let mut w = SpillWriter::create(dir.path(), 2, &Aabb::empty(), 1 << 20).unwrap();
+        let part = part_dir(dir.path(), 0);
+        std::fs::create_dir(&part).unwrap();
+        let mut w = SpillWriter::create(&part, 2, &Aabb::empty(), 1 << 20).unwrap();
         let a = DVec3::new(1.0, 2.0, 3.0);
         w.push(0, &point(5, a, true, false)).unwrap();
         w.push(1, &point(5, a, false, false)).unwrap();
@@ -664,7 +678,7 @@ mod tests {
         w.push(1, &point(9, far, true, true)).unwrap();
         assert_eq!(w.finish().unwrap(), 96);
         let mut pts = Vec::new();
-        read_spill(dir.path(), 1, |_, _, _| true, &mut pts).unwrap();
+        read_spill(dir.path(), 1, 1, |_, _, _| true, &mut pts).unwrap();
         assert_eq!(pts, [point(5, a, false, false), point(9, far, true, true)]);
         let r = |i: u64| TileResult {
             index: i,
@@ -682,14 +696,17 @@ mod tests {
         assert_eq!(got, vec![0, 1, 3, 4, 7, 9]);
     }
 
-    /// One tile of `n` records at random positions, a quarter of them halo copies, some at one
-    /// duplicated position, written with `memory` bytes of buffer.
-    fn scattered_tile(dir: &Path, n: u64, memory: u64) {
+    /// Part `part` of one tile of `n` records at random positions, a quarter of them halo
+    /// copies, some at one duplicated position: the records of `range`, written with `memory`
+    /// bytes of buffer into the part's directory in `dir`.
+    fn scattered_tile(dir: &Path, part: u64, range: std::ops::Range<u64>, n: u64, memory: u64) {
         let bounds = Aabb {
             min: DVec3::ZERO,
             max: DVec3::splat(10.0),
         };
-        let mut w = SpillWriter::create(dir, 1, &bounds, memory).unwrap();
+        let part = part_dir(dir, part);
+        std::fs::create_dir(&part).unwrap();
+        let mut w = SpillWriter::create(&part, 1, &bounds, memory).unwrap();
         let mut x = 0x9e37_79b9_7f4a_7c15u64;
         let mut rnd = move || {
             x ^= x << 13;
@@ -704,14 +721,25 @@ mod tests {
             } else {
                 DVec3::new(rnd(), rnd(), rnd())
             };
-            w.push(
-                0,
-                &point(index, p, !i.is_multiple_of(4), i.is_multiple_of(5)),
-            )
-            .unwrap();
+            if range.contains(&index) {
+                w.push(
+                    0,
+                    &point(index, p, !i.is_multiple_of(4), i.is_multiple_of(5)),
+                )
+                .unwrap();
+            }
         }
         w.finish().unwrap();
     }
+
+    /// Boxes to read by: inside, a thin slab, one point, outside, around everything.
+    const SPANS: [(DVec3, DVec3); 5] = [
+        (DVec3::splat(4.0), DVec3::splat(6.0)),
+        (DVec3::new(0.0, 9.0, 0.0), DVec3::new(10.0, 10.0, 0.5)),
+        (DVec3::splat(5.0), DVec3::splat(5.0)),
+        (DVec3::splat(-3.0), DVec3::splat(-1.0)),
+        (DVec3::splat(-1.0), DVec3::splat(11.0)),
+    ];
 
     #[test]
     fn issue16_reads_by_block_keep_exactly_the_owned_points_a_whole_read_keeps() {
@@ -719,32 +747,26 @@ mod tests {
         // 64 KiB of buffer: 20 sorted runs; 32 MiB: one.
         for memory in [64 << 10, 32 << 20] {
             let dir = tempfile::tempdir().unwrap();
-            scattered_tile(dir.path(), n, memory);
-            let table = std::fs::read(blocks_path(dir.path(), 0)).unwrap();
+            scattered_tile(dir.path(), 0, 0..n, n, memory);
+            let table_path = blocks_path(&part_dir(dir.path(), 0), 0);
+            let table = std::fs::read(&table_path).unwrap();
             assert!(table.len() / BLOCK_ENTRY > 100, "{} blocks", table.len());
             let mut whole = Vec::new();
-            read_spill(dir.path(), 0, |_, _, _| true, &mut whole).unwrap();
+            read_spill(dir.path(), 1, 0, |_, _, _| true, &mut whole).unwrap();
             assert_eq!(whole.len(), n as usize);
             assert!(whole.windows(2).all(|w| w[0].index < w[1].index));
-            let spans = [
-                (DVec3::splat(4.0), DVec3::splat(6.0)),
-                (DVec3::new(0.0, 9.0, 0.0), DVec3::new(10.0, 10.0, 0.5)),
-                (DVec3::splat(5.0), DVec3::splat(5.0)),
-                (DVec3::splat(-3.0), DVec3::splat(-1.0)),
-                (DVec3::splat(-1.0), DVec3::splat(11.0)),
-            ];
-            for (lo, hi) in spans {
+            for (lo, hi) in SPANS {
                 let span = Aabb { min: lo, max: hi };
                 let inside = |p: DVec3| (0..3).all(|a| p[a] >= lo[a] && p[a] <= hi[a]);
                 let mut want = Vec::new();
-                read_spill(dir.path(), 0, |_, p, halo| !halo && inside(p), &mut want).unwrap();
+                read_spill(dir.path(), 1, 0, |_, p, halo| !halo && inside(p), &mut want).unwrap();
                 let mut seen = 0;
                 let mut got = vec![point(u64::MAX, DVec3::ZERO, true, true)];
                 let keep = |p| {
                     seen += 1;
                     inside(p)
                 };
-                read_owned_near(dir.path(), 0, &span, keep, &mut got).unwrap();
+                read_owned_near(dir.path(), 1, 0, &span, keep, &mut got).unwrap();
                 assert_eq!(got[1..], want[..], "{span:?}");
                 // One sorted run reads a small span's blocks only (under a third of the 30 000
                 // owned records for a span of 1 % of the volume or less).
@@ -752,27 +774,53 @@ mod tests {
                     assert!(seen < n as usize / 4, "read {seen} records for {span:?}");
                 }
             }
-            // Without a table the whole file is read, with the same result.
+            // A table that does not describe the file is refused, a missing one too.
             let span = Aabb {
                 min: DVec3::splat(2.0),
                 max: DVec3::splat(3.0),
             };
             let inside = |p: DVec3| (0..3).all(|a| p[a] >= 2.0 && p[a] <= 3.0);
-            let mut with = Vec::new();
-            read_owned_near(dir.path(), 0, &span, inside, &mut with).unwrap();
-            std::fs::remove_file(blocks_path(dir.path(), 0)).unwrap();
-            let mut without = Vec::new();
-            read_owned_near(dir.path(), 0, &span, inside, &mut without).unwrap();
-            assert_eq!(with, without);
-            assert!(!with.is_empty());
-            // A table that does not describe the file is refused.
+            let mut out = Vec::new();
             let short = &table[..table.len() - BLOCK_ENTRY];
-            std::fs::write(blocks_path(dir.path(), 0), short).unwrap();
+            std::fs::write(&table_path, short).unwrap();
             assert!(matches!(
-                read_owned_near(dir.path(), 0, &span, inside, &mut without),
+                read_owned_near(dir.path(), 1, 0, &span, inside, &mut out),
                 Err(TilingError::Corrupt { .. })
             ));
+            std::fs::remove_file(&table_path).unwrap();
+            assert!(matches!(
+                read_owned_near(dir.path(), 1, 0, &span, inside, &mut out),
+                Err(TilingError::Io { .. })
+            ));
         }
+    }
+
+    #[test]
+    fn issue11_a_tile_spilled_in_parts_reads_as_the_tile_spilled_whole() {
+        let n = 30_000u64;
+        let whole = tempfile::tempdir().unwrap();
+        scattered_tile(whole.path(), 0, 0..n, n, 256 << 10);
+        let cut = tempfile::tempdir().unwrap();
+        let ranges = [0..7_000, 7_000..7_001, 7_001..7_001, 7_001..n];
+        for (part, range) in ranges.into_iter().enumerate() {
+            scattered_tile(cut.path(), part as u64, range, n, 64 << 10);
+        }
+        let read = |dir: &Path, parts: u64| {
+            let mut all = Vec::new();
+            read_spill(dir, parts, 0, |_, _, _| true, &mut all).unwrap();
+            let mut near = Vec::new();
+            for (lo, hi) in SPANS {
+                let span = Aabb { min: lo, max: hi };
+                let inside = |p: DVec3| (0..3).all(|a| p[a] >= lo[a] && p[a] <= hi[a]);
+                read_owned_near(dir, parts, 0, &span, inside, &mut near).unwrap();
+            }
+            (all, near)
+        };
+        let (a, b) = (read(whole.path(), 1), read(cut.path(), 4));
+        assert_eq!(a.0.len(), n as usize);
+        assert!(a.1.len() > 1000);
+        assert_eq!(a, b);
+        assert_eq!(spilled_points(cut.path(), 4, 0).unwrap(), n);
     }
 
     #[test]

@@ -6,9 +6,13 @@
 //! ```text
 //!  pid                  "<pid> <pid namespace> <boot id>": the owner (temporary directories)
 //!  plan.json            the plan (pass 1); a different plan invalidates every other file
-//!  tile_<t>.pts         spill file of tile t (pass 2, see super::spill)
-//!  tile_<t>.blk         its block table: the box of each block of owned records
-//!  occupancy.json       the partition pass's occupancy grid (saved before the marker)
+//!  part_<p>/            what partition task p wrote (records [p·n/P, (p+1)·n/P) of the input):
+//!    tile_<t>.pts         spill file of tile t (pass 2, see super::spill)
+//!    tile_<t>.blk         its block table: the box of each block of owned records
+//!    occupancy.json       its occupancy grid (when the plan has an isolation radius)
+//!    part.json            the part is committed: its bytes (written in .part_<p>.tmp/, which
+//!                         is renamed to part_<p>/ whole)
+//!  occupancy.json       the parts' occupancy grids merged (saved before the marker)
 //!  spill.done           the partition is committed (holds the bytes spilled)
 //!  globals.json         the global scalars (the pre-pass), when the method needs them
 //!  tile_<t>.res         results of tile t (written atomically)
@@ -48,14 +52,34 @@ pub const OCCUPANCY_FILE: &str = "occupancy.json";
 /// The global scalars of the pre-pass.
 pub const GLOBALS_FILE: &str = "globals.json";
 
-/// The spill file of tile `t` in `dir`.
-pub fn spill_path(dir: &Path, t: usize) -> PathBuf {
-    dir.join(format!("tile_{t:05}.pts"))
+/// The marker of a committed part, in its directory.
+pub const PART_DONE: &str = "part.json";
+
+/// The directory of partition part `part` in `dir`.
+pub fn part_dir(dir: &Path, part: u64) -> PathBuf {
+    dir.join(format!("part_{part:04}"))
 }
 
-/// The block table of tile `t`'s spill file in `dir` (see [`super::spill`]).
-pub fn blocks_path(dir: &Path, t: usize) -> PathBuf {
-    dir.join(format!("tile_{t:05}.blk"))
+/// Where partition part `part` is written before it is committed (renamed to [`part_dir`]).
+fn part_temp(dir: &Path, part: u64) -> PathBuf {
+    dir.join(format!(".part_{part:04}.tmp"))
+}
+
+/// The spill file of tile `t` in the directory `part` of a partition part.
+pub fn spill_path(part: &Path, t: usize) -> PathBuf {
+    part.join(format!("tile_{t:05}.pts"))
+}
+
+/// The block table of tile `t`'s spill file in `part` (see [`super::spill`]).
+pub fn blocks_path(part: &Path, t: usize) -> PathBuf {
+    part.join(format!("tile_{t:05}.blk"))
+}
+
+/// A committed part's marker ([`PART_DONE`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct PartDone {
+    /// Bytes the part spilled.
+    pub bytes: u64,
 }
 
 /// The result file of tile `t` in `dir`.
@@ -77,6 +101,8 @@ pub fn merge_path(dir: &Path, level: usize, g: usize) -> PathBuf {
 fn is_run_file(name: &str) -> bool {
     name.starts_with("tile_")
         || name.starts_with("merge_")
+        || name.starts_with("part_")
+        || name.starts_with(".part_")
         || [PLAN_FILE, PARTITION_DONE, OCCUPANCY_FILE, GLOBALS_FILE].contains(&name)
 }
 
@@ -140,9 +166,78 @@ impl WorkDir {
         matches!(self.kind, Kind::Temp(_))
     }
 
-    /// The spill file of tile `t`.
-    pub fn spill(&self, t: usize) -> PathBuf {
-        spill_path(self.path(), t)
+    /// The directory of partition part `part`.
+    pub fn part(&self, part: u64) -> PathBuf {
+        part_dir(self.path(), part)
+    }
+
+    /// The marker of part `part`, when it is committed (an unreadable one counts as missing).
+    pub fn committed_part(&self, part: u64) -> Option<PartDone> {
+        load_json(&self.part(part).join(PART_DONE))
+    }
+
+    /// An empty directory to write part `part` in (whatever an earlier attempt left there is
+    /// removed: the caller is the part's only writer).
+    ///
+    /// # Errors
+    /// The directory cannot be cleared or made.
+    pub fn begin_part(&self, part: u64) -> Result<PathBuf, IoError> {
+        let tmp = part_temp(self.path(), part);
+        if tmp.exists() {
+            std::fs::remove_dir_all(&tmp).map_err(|e| IoError::io(&tmp, e))?;
+        }
+        std::fs::create_dir(&tmp).map_err(|e| IoError::io(&tmp, e))?;
+        Ok(tmp)
+    }
+
+    /// Commits part `part` written in [`WorkDir::begin_part`]'s directory: its occupancy grid
+    /// and its marker, then the directory renamed into place whole.
+    ///
+    /// # Errors
+    /// Write failures; the part committed already (its directory exists).
+    pub fn commit_part(
+        &self,
+        part: u64,
+        done: PartDone,
+        occupancy: Option<&Occupancy>,
+    ) -> Result<(), IoError> {
+        let tmp = part_temp(self.path(), part);
+        if let Some(o) = occupancy {
+            save_json(&tmp.join(OCCUPANCY_FILE), o)?;
+        }
+        save_json(&tmp.join(PART_DONE), &done)?;
+        let to = self.part(part);
+        std::fs::rename(&tmp, &to).map_err(|e| IoError::io(&to, e))
+    }
+
+    /// Commits the partition of `plan` when all its parts are committed and here (with their
+    /// occupancy grids, when the plan has an isolation radius): the grids merged, the plan, then
+    /// the marker with the bytes spilled. Returns the bytes, or `None` while something is
+    /// missing. Any number of callers may race: they write the same bytes.
+    ///
+    /// # Errors
+    /// Write failures.
+    pub fn commit_parts(&self, plan: &Plan) -> Result<Option<u64>, IoError> {
+        let mut bytes = 0u64;
+        let mut merged: Option<Occupancy> = None;
+        for part in 0..plan.parts() {
+            let Some(done) = self.committed_part(part) else {
+                return Ok(None);
+            };
+            bytes += done.bytes;
+            if plan.isolation.is_some() {
+                let Some(o) = load_json::<Occupancy>(&self.part(part).join(OCCUPANCY_FILE)) else {
+                    return Ok(None);
+                };
+                match &mut merged {
+                    Some(m) => m.merge(&o),
+                    None => merged = Some(o),
+                }
+            }
+        }
+        save_json(&self.path().join(PLAN_FILE), plan)?;
+        self.commit_partition(bytes, merged.as_ref())?;
+        Ok(Some(bytes))
     }
 
     /// The result file of tile `t`.
@@ -159,13 +254,17 @@ impl WorkDir {
         (same && marker.exists()).then(|| load_json(&marker).unwrap_or(0))
     }
 
-    /// Starts partitioning for `plan`: removes every file of an earlier run (a plan that changed
+    /// Starts partitioning for `plan`: unless the plan saved here is the same (whose committed
+    /// parts are then kept), removes every file of an earlier run (a plan that changed
     /// invalidates them all) and saves the plan.
     ///
     /// # Errors
     /// Files cannot be removed or written.
     pub fn begin_partition(&self, plan: &Plan) -> Result<(), IoError> {
         let dir = self.path();
+        if load_json::<Plan>(&dir.join(PLAN_FILE)).is_some_and(|p| p == *plan) {
+            return Ok(());
+        }
         let entries = std::fs::read_dir(dir).map_err(|e| IoError::io(dir, e))?;
         for e in entries {
             let p = e.map_err(|e| IoError::io(dir, e))?.path();
@@ -173,23 +272,22 @@ impl WorkDir {
                 .file_name()
                 .map(|n| n.to_string_lossy().into_owned())
                 .unwrap_or_default();
-            if is_run_file(&name) {
-                std::fs::remove_file(&p).map_err(|e| IoError::io(&p, e))?;
+            if !is_run_file(&name) {
+                continue;
             }
+            let gone = if p.is_dir() {
+                std::fs::remove_dir_all(&p)
+            } else {
+                std::fs::remove_file(&p)
+            };
+            gone.map_err(|e| IoError::io(&p, e))?;
         }
         save_json(&dir.join(PLAN_FILE), plan)
     }
 
     /// Commits the partition: the occupancy grid (when there is one), then the marker with the
     /// bytes spilled.
-    ///
-    /// # Errors
-    /// Write failures.
-    pub fn commit_partition(
-        &self,
-        bytes: u64,
-        occupancy: Option<&Occupancy>,
-    ) -> Result<(), IoError> {
+    fn commit_partition(&self, bytes: u64, occupancy: Option<&Occupancy>) -> Result<(), IoError> {
         if let Some(o) = occupancy {
             save_json(&self.path().join(OCCUPANCY_FILE), o)?;
         }
@@ -376,6 +474,56 @@ mod tests {
             .collect();
         assert_eq!(left, vec![PLAN_FILE.to_string()]);
         assert!(w.committed_globals().is_none() && w.committed_tile(0).is_none());
+    }
+
+    #[test]
+    fn issue11_parts_commit_whole_and_the_partition_only_with_all_of_them() {
+        let d = tempfile::tempdir().unwrap();
+        let w = WorkDir::persistent(&d.path().join("job")).unwrap();
+        let mut p = plan();
+        p.parts = 3;
+        p.isolation = Some(1.0);
+        w.begin_partition(&p).unwrap();
+        let pts: Vec<glam::DVec3> = (0..300)
+            .map(|i| glam::DVec3::new(f64::from(i) * 0.37, f64::from(i % 7), 0.5))
+            .collect();
+        let mut all = Occupancy::new(0.25, glam::DVec3::ZERO);
+        pts.iter().for_each(|&q| all.add(q));
+        let grid = |part: usize| {
+            let mut o = Occupancy::new(0.25, glam::DVec3::ZERO);
+            pts[part * 100..(part + 1) * 100]
+                .iter()
+                .for_each(|&q| o.add(q));
+            o
+        };
+        for part in [2u64, 0] {
+            let tmp = w.begin_part(part).unwrap();
+            std::fs::write(tmp.join("tile_00000.pts"), b"x").unwrap();
+            // A retry starts the part afresh.
+            let tmp = w.begin_part(part).unwrap();
+            assert_eq!(std::fs::read_dir(&tmp).unwrap().count(), 0);
+            assert!(w.committed_part(part).is_none(), "written, not committed");
+            let done = PartDone { bytes: 32 * part };
+            w.commit_part(part, done, Some(&grid(part as usize)))
+                .unwrap();
+            assert_eq!(w.committed_part(part), Some(done));
+            assert!(!tmp.exists());
+        }
+        assert_eq!(w.commit_parts(&p).unwrap(), None, "part 1 is missing");
+        assert_eq!(w.committed_partition(&p), None);
+        w.begin_part(1).unwrap();
+        w.commit_part(1, PartDone { bytes: 32 }, Some(&grid(1)))
+            .unwrap();
+        assert_eq!(w.commit_parts(&p).unwrap(), Some(96));
+        assert_eq!(w.committed_partition(&p), Some(96));
+        assert_eq!(w.occupancy(), Some(all), "the merged grid is one pass's");
+        // The same plan again keeps the parts; another clears them.
+        w.begin_partition(&p).unwrap();
+        assert!(w.committed_part(1).is_some());
+        let mut other = p.clone();
+        other.parts = 2;
+        w.begin_partition(&other).unwrap();
+        assert!(w.committed_part(1).is_none() && !w.part(0).exists());
     }
 
     #[test]

@@ -40,6 +40,11 @@ pub struct LasSource {
     read: u64,
     total: u64,
     tail: TailPlan,
+    /// Where the point records start.
+    data_start: u64,
+    /// True when [`Source::seek_point`] can move (plain records, or LAZ with a chunk table of
+    /// fixed-size chunks).
+    seekable: bool,
     /// Opens the input again to read the tail after a decoder panic.
     again: Reopener,
 }
@@ -244,15 +249,15 @@ impl LasSource {
             None
         };
         let tail = plan_tail(path, &mut file, size, tail_start, first_evlr)?;
-        let points = if compressed {
+        let (points, seekable) = if compressed {
             open_laz(path, file, size, data_start, &vlrs, record_len, count)?
         } else {
             file.seek(SeekFrom::Start(data_start)).map_err(io)?;
             let reader = BufReader::with_capacity(1 << 16, file);
             if count == 0 {
-                Points::Empty(reader)
+                (Points::Empty(reader), false)
             } else {
-                Points::Plain(reader)
+                (Points::Plain(reader), true)
             }
         };
 
@@ -284,6 +289,8 @@ impl LasSource {
             read: 0,
             total: count,
             tail,
+            data_start,
+            seekable,
             again,
         })
     }
@@ -359,7 +366,7 @@ fn open_laz(
     vlrs: &[LasVlr],
     record_len: usize,
     count: u64,
-) -> Result<Points, IoError> {
+) -> Result<(Points, bool), IoError> {
     let io = |e| IoError::io(path, e);
     let vlr = vlrs
         .iter()
@@ -381,7 +388,7 @@ fn open_laz(
     }
     let mut reader = BufReader::with_capacity(1 << 16, file);
     if count == 0 {
-        return Ok(Points::Empty(reader));
+        return Ok((Points::Empty(reader), false));
     }
     if size < data_start + 8 {
         return Err(IoError::truncated(
@@ -395,6 +402,9 @@ fn open_laz(
             .try_into()
             .expect("8 bytes"),
     );
+    // `LasZipDecompressor::seek` needs the table, and finds a point's place in its chunk by the
+    // fixed chunk size.
+    let seekable = table_at > data_start as i64 && !laz_vlr.uses_variable_size_chunks();
     if table_at > data_start as i64 {
         let table_at = table_at as u64;
         if size < 8 || table_at > size - 8 {
@@ -468,7 +478,7 @@ fn open_laz(
     let dec = guarded(path, || {
         LasZipDecompressor::new(reader, laz_vlr).map_err(|e| laz_error(path, e))
     })?;
-    Ok(Points::Laz(Box::new(dec)))
+    Ok((Points::Laz(Box::new(dec)), seekable))
 }
 
 impl Source for LasSource {
@@ -516,6 +526,33 @@ impl Source for LasSource {
             }));
         self.read += n as u64;
         Ok(n)
+    }
+
+    fn seek_point(&mut self, index: u64) -> Result<bool, IoError> {
+        if !self.seekable || index > self.total {
+            return Ok(false);
+        }
+        let path = &self.info.path;
+        let rl = self.info.schema.record_len as u64;
+        match &mut self.points {
+            Points::Plain(r) => {
+                r.seek(SeekFrom::Start(self.data_start + index * rl))
+                    .map_err(|e| IoError::io(path, e))?;
+            }
+            // The decompressor cannot seek to the end of its last chunk: nothing is left to
+            // read there anyway.
+            Points::Laz(_) if index == self.total => {}
+            Points::Laz(d) => {
+                let r = guarded(path, || d.seek(index).map_err(|e| laz_error(path, e)));
+                if r.is_err() {
+                    self.points = Points::Broken;
+                }
+                r?
+            }
+            Points::Empty(_) | Points::Broken => return Ok(false),
+        }
+        self.read = index;
+        Ok(true)
     }
 
     fn finish(self: Box<Self>) -> Result<Extras, IoError> {

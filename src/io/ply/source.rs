@@ -27,6 +27,8 @@ pub struct PlySource {
     text: Vec<u8>,
     /// Faces of a face element stored before `vertex`.
     early_faces: Option<Faces>,
+    /// Where the vertex records start, for a binary file that can seek.
+    vertex_start: Option<u64>,
 }
 
 impl PlySource {
@@ -180,6 +182,11 @@ impl PlySource {
                 })
             });
 
+        let vertex_start = if encoding.is_binary() {
+            std::io::Seek::stream_position(&mut reader).ok()
+        } else {
+            None
+        };
         let codec = PosCodec::new(&schema);
         let elements = header.elements.clone();
         let info = SourceInfo {
@@ -208,6 +215,7 @@ impl PlySource {
             codec,
             text: Vec::new(),
             early_faces,
+            vertex_start,
         })
     }
 
@@ -352,6 +360,20 @@ impl Source for PlySource {
             .decode(&self.info.schema, &batch.records, &mut batch.positions);
         self.read += n as u64;
         Ok(n)
+    }
+
+    fn seek_point(&mut self, index: u64) -> Result<bool, IoError> {
+        let Some(start) = self.vertex_start.filter(|_| index <= self.count) else {
+            return Ok(false);
+        };
+        let rl = self.info.schema.record_len as u64;
+        std::io::Seek::seek(
+            &mut self.reader,
+            std::io::SeekFrom::Start(start + index * rl),
+        )
+        .map_err(|e| IoError::io(&self.info.path, e))?;
+        self.read = index;
+        Ok(true)
     }
 
     fn finish(self: Box<Self>) -> Result<Extras, IoError> {

@@ -346,6 +346,7 @@ impl Jobs {
             spec: row.spec.denoise.clone(),
             memory_budget: row.spec.memory_budget,
             tile_points: row.spec.tile_points,
+            part_points: None,
             stored_as: None,
         };
         let work = ctx.work_url();

@@ -168,10 +168,7 @@ pub fn summary(work: &WorkUrl) -> Result<Report, ScaleoutError> {
     stats.non_finite = plan.points - plan.finite;
     stats.points = plan.points;
     let kernel = std::mem::take(&mut stats.phases);
-    let spill = (0..plan.tiles.len())
-        .filter_map(|t| std::fs::metadata(w.spill(t)).ok())
-        .map(|m| m.len())
-        .sum::<u64>();
+    let spill = w.committed_partition(plan).unwrap_or(0);
     let mut r = Report::empty(&frozen.job(dir), "tiled");
     r.normals = s.normals;
     r.points_in = plan.points;

@@ -18,8 +18,9 @@ use crate::io::{Format, IoError};
 use crate::pipeline::{DenoiseSpec, Job, RunOptions};
 use crate::tiling::plan::Plan;
 
-/// Version of the `job.json` layout; a work directory of another version is refused.
-pub const VERSION: u32 = 1;
+/// Version of the `job.json` layout and of the work directory's; a work directory of another
+/// version is refused. 2: the partition is written in parts (`part_<p>/`).
+pub const VERSION: u32 = 2;
 
 /// A format as stored: its name, and the layout of a raw `.bin` format (which the name alone
 /// reads back as KITTI).
@@ -197,7 +198,7 @@ impl FrozenJob {
         } else {
             0
         };
-        [1, globals, tiles, 1]
+        [self.plan.parts(), globals, tiles, 1]
     }
 
     /// Tasks of `phase`.

@@ -6,7 +6,7 @@
 //!  globals_<t>.json    tile t's partial sums of the global scalars (globals phase)
 //!  output.<ext>        the stitched output (stitch phase), then
 //!  stitch.json         its counts: the stitch is committed
-//!  partition.lock      held by the partition task while it runs (an empty file)
+//!  partition_<p>.lock  held by the task writing partition part p (an empty file)
 //!  stitch.lock         held by the stitch (or finish) while it runs
 //! ```
 //!
@@ -35,6 +35,11 @@ pub fn output_path(dir: &Path, format: Format) -> PathBuf {
 /// The lock file of a single-task phase.
 pub fn lock_path(dir: &Path, phase: super::Phase) -> PathBuf {
     dir.join(format!("{}.lock", phase.name()))
+}
+
+/// The lock file of partition part `part`.
+pub fn part_lock_path(dir: &Path, part: u64) -> PathBuf {
+    dir.join(format!("partition_{part:04}.lock"))
 }
 
 /// Writes `value` as JSON to `path` atomically; `sync` also syncs it to disk (the frozen job).

@@ -1,5 +1,5 @@
-//! The exclusive lock a single-task phase holds on its work directory while it runs, so that a
-//! duplicated task (an engine's retry racing the original) waits and then finds the work
+//! The exclusive lock a single-task phase (or a partition part) holds on its work directory
+//! while it runs, so that a duplicated task (an engine's retry racing the original) waits and then finds the work
 //! committed instead of writing the same files at once. The operating system releases it when
 //! the holder exits, however it exits (a SIGKILL included).
 
@@ -7,7 +7,7 @@ use std::fs::File;
 use std::path::Path;
 
 use super::Phase;
-use super::layout::lock_path;
+use super::layout::{lock_path, part_lock_path};
 use crate::io::IoError;
 
 /// A held lock; released on drop.
@@ -22,14 +22,28 @@ impl PhaseLock {
     /// # Errors
     /// The lock file cannot be created or locked (a file system without locks).
     pub fn acquire(dir: &Path, phase: Phase) -> Result<PhaseLock, IoError> {
-        let path = lock_path(dir, phase);
+        PhaseLock::at(&lock_path(dir, phase))
+    }
+}
+
+impl PhaseLock {
+    /// Waits for and takes the lock of partition part `part` in `dir` (each part is written by
+    /// one task at a time).
+    ///
+    /// # Errors
+    /// As [`PhaseLock::acquire`].
+    pub fn acquire_part(dir: &Path, part: u64) -> Result<PhaseLock, IoError> {
+        PhaseLock::at(&part_lock_path(dir, part))
+    }
+
+    fn at(path: &Path) -> Result<PhaseLock, IoError> {
         let file = File::options()
             .create(true)
             .truncate(false)
             .write(true)
-            .open(&path)
-            .map_err(|e| IoError::io(&path, e))?;
-        file.lock().map_err(|e| IoError::io(&path, e))?;
+            .open(path)
+            .map_err(|e| IoError::io(path, e))?;
+        file.lock().map_err(|e| IoError::io(path, e))?;
         Ok(PhaseLock { file })
     }
 }

@@ -26,6 +26,8 @@ pub struct PlanRequest {
     pub memory_budget: u64,
     /// Forced tile size.
     pub tile_points: Option<u64>,
+    /// Input records per partition part ([`RunOptions::part_points`]).
+    pub part_points: Option<u64>,
     /// Where tasks find the input when it is not `input` itself: a path relative to the work
     /// directory, for a job that carries a copy of its input (an object-store job uploads it
     /// there). `None`: tasks read `input`, which every task must be able to reach.
@@ -126,6 +128,7 @@ pub fn plan(
     let opts = RunOptions {
         memory_budget: req.memory_budget,
         tile_points: req.tile_points,
+        part_points: req.part_points,
         work_dir: Some(dir.to_path_buf()),
         progress,
         cancel,

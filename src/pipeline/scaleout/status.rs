@@ -10,7 +10,7 @@ use super::layout::{globals_partial_path, load_json};
 use super::url::WorkUrl;
 use super::worker::committed_stitch;
 use super::{Phase, ScaleoutError};
-use crate::tiling::workdir::WorkDir;
+use crate::tiling::workdir::{PART_DONE, WorkDir};
 
 /// One phase's progress.
 #[derive(Debug, Clone, Serialize)]
@@ -60,7 +60,15 @@ pub fn status(work: &WorkUrl) -> Result<Status, ScaleoutError> {
     let w = WorkDir::persistent(dir).map_err(|e| crate::io::IoError::io(dir, e))?;
     let tiles = frozen.plan.tiles.len();
     let tasks = frozen.tasks();
-    let partition = u64::from(w.committed_partition(&frozen.plan).is_some());
+    let parts = frozen.plan.parts();
+    let partition = if w.committed_partition(&frozen.plan).is_some() {
+        parts
+    } else {
+        // By the markers' presence: an object store's status stands in empty files for them.
+        (0..parts)
+            .filter(|&p| w.part(p).join(PART_DONE).exists())
+            .count() as u64
+    };
     let globals = if tasks[1] == 0 {
         0
     } else if w.committed_globals().is_some() {
@@ -74,7 +82,7 @@ pub fn status(work: &WorkUrl) -> Result<Status, ScaleoutError> {
         .filter(|&t| w.committed_tile(t).is_some())
         .count() as u64;
     let stitch = u64::from(committed_stitch(dir, &frozen).is_some());
-    let units = [1, tasks[1], tiles as u64, 1];
+    let units = [parts, tasks[1], tiles as u64, 1];
     let committed = [partition, globals, done_tiles, stitch];
     let phases: Vec<PhaseStatus> = Phase::ALL
         .iter()

@@ -5,7 +5,7 @@
 
 use std::path::Path;
 use std::sync::Arc;
-use std::sync::atomic::AtomicBool;
+use std::sync::atomic::{AtomicBool, AtomicU64};
 use std::time::Instant;
 
 use serde::{Deserialize, Serialize};
@@ -33,7 +33,7 @@ pub struct TaskReport {
     pub phase: Phase,
     /// Which task.
     pub task: TaskIndex,
-    /// Units (tiles, or the one partition or stitch) that are this task's.
+    /// Units (partition parts, tiles, or the one stitch) that are this task's.
     pub assigned: u64,
     /// Units it did.
     pub done: u64,
@@ -123,11 +123,23 @@ impl Ctx {
         }
     }
 
-    /// The committed partition, or [`ScaleoutError::NotReady`].
+    /// The committed partition (committed here when all its parts are), or
+    /// [`ScaleoutError::NotReady`].
     fn partition(&self, phase: Phase) -> Result<Partition, ScaleoutError> {
         let plan = &self.frozen.plan;
-        if self.work.committed_partition(plan).is_none() {
-            return Err(self.not_ready(phase, "the partition phase committed".into()));
+        if self.work.committed_partition(plan).is_none() && self.work.commit_parts(plan)?.is_none()
+        {
+            let missing: Vec<u64> = (0..plan.parts())
+                .filter(|&p| self.work.committed_part(p).is_none())
+                .collect();
+            return Err(self.not_ready(
+                phase,
+                format!(
+                    "the partition phase committed ({} of {} parts missing)",
+                    missing.len(),
+                    plan.parts()
+                ),
+            ));
         }
         // Committed: this only reads it back and checks the tiles against the budget.
         let limits = self.frozen.limits(self.work.path());
@@ -258,16 +270,35 @@ pub fn run_task(
     };
     let single = task.index == 0;
     match phase {
-        Phase::Partition if single => {
-            r.assigned = 1;
-            let _lock = PhaseLock::acquire(dir, phase)?;
-            if ctx.work.committed_partition(&ctx.frozen.plan).is_some() {
-                r.skipped = 1;
+        Phase::Partition => {
+            let plan = &ctx.frozen.plan;
+            let parts = plan.parts();
+            let mine = assigned(task.index, task.of, parts as usize).map(|p| p as u64);
+            if ctx.work.committed_partition(plan).is_some() {
+                r.assigned = mine.count() as u64;
+                r.skipped = r.assigned;
             } else {
                 ctx.frozen.check_input(dir)?;
-                let limits = ctx.frozen.limits(dir);
-                partition::partition(&ctx.job, &ctx.opts, &ctx.frozen.plan, &limits, &ctx.work)?;
-                r.done = 1;
+                ctx.opts.progress.phase("partition", plan.points);
+                let read = AtomicU64::new(0);
+                let memory = ctx.opts.memory_budget / partition::SPILL_SHARE;
+                for part in mine {
+                    ctx.opts.check_cancel()?;
+                    r.assigned += 1;
+                    // A duplicate of this task waits here, then finds the part committed.
+                    let _lock = PhaseLock::acquire_part(dir, part)?;
+                    if ctx.work.committed_part(part).is_some() {
+                        r.skipped += 1;
+                        continue;
+                    }
+                    partition::write_part(
+                        &ctx.job, &ctx.opts, plan, &ctx.work, part, memory, &read,
+                    )?;
+                    r.done += 1;
+                }
+                // The task that commits the last part commits the partition; when none saw
+                // them all (an object store lists once), the next phase does.
+                ctx.work.commit_parts(plan)?;
             }
         }
         Phase::Globals if cloud::needs_globals(&ctx.job.spec.params) => {
@@ -348,7 +379,7 @@ pub fn run_task(
             }
         }
         // A task past the phase's count (a larger array than needed) has nothing to do.
-        Phase::Partition | Phase::Globals | Phase::Stitch => {}
+        Phase::Globals | Phase::Stitch => {}
     }
     r.wall_s = start.elapsed().as_secs_f64();
     Ok(r)

@@ -81,5 +81,28 @@ pub fn plan(
     // The in-memory run caps its lists the same way (`cloud::run_all`).
     (plan.isolation, plan.short_lists) =
         crate::denoise::isolation::cap(plan.isolation, job.spec.params.radius);
+    plan.parts = parts(job, opts, &plan)?;
     Ok(plan)
+}
+
+/// Input records a partition part reads by default: a part under a second of reading would
+/// cost more in files than it saves.
+pub const PART_POINTS: u64 = 2_000_000;
+
+/// Most spill files (parts × tiles) a partition makes: every tile read opens one per part.
+const MAX_PART_FILES: u64 = 4096;
+
+/// How many parts `plan`'s partition is cut into: [`RunOptions::part_points`] records each
+/// (within [`MAX_PART_FILES`]), or one when the input cannot seek to a record.
+///
+/// # Errors
+/// The input cannot be opened again.
+fn parts(job: &Job, opts: &RunOptions, plan: &Plan) -> Result<u64, PipelineError> {
+    let each = opts.part_points.unwrap_or(PART_POINTS).max(1);
+    let most = (MAX_PART_FILES / plan.tiles.len().max(1) as u64).max(1);
+    let parts = plan.points.div_ceil(each).clamp(1, most);
+    if parts > 1 && !crate::io::open(&job.input, job.input_format)?.seek_point(0)? {
+        return Ok(1);
+    }
+    Ok(parts)
 }
