@@ -32,7 +32,7 @@ pub fn output_path(dir: &Path, format: Format) -> PathBuf {
     dir.join(format!("output.{}", format.name()))
 }
 
-/// The lock file of a single-task phase.
+/// The lock file of the single-task phase `phase` (the stitch).
 pub fn lock_path(dir: &Path, phase: super::Phase) -> PathBuf {
     dir.join(format!("{}.lock", phase.name()))
 }

@@ -11,7 +11,8 @@
 //!
 //! ```text
 //!  phase       tasks          task I of N does                     commits
-//!  partition   1              the spill pass (index 0)             tile_<t>.pts, .blk, spill.done
+//!  partition   parts          part p's records, p ≡ I mod N        part_<p>/ (spill files, part.json),
+//!                                                                   then spill.done
 //!  globals     tiles or 0     tile t's partial sums, t ≡ I mod N   globals_<t>.json
 //!  tiles       tiles          tile t, t ≡ I mod N                  tile_<t>.res, tile_<t>.json
 //!  stitch      1              the output, in the work dir (I = 0)  output.<ext>, stitch.json
@@ -19,12 +20,16 @@
 //! ```
 //!
 //! Each task is **idempotent**: it skips what is committed and commits each result atomically
-//! (temp + rename), so a duplicated, retried or killed task changes nothing. The single-task
-//! phases hold an exclusive lock on the work directory's `<phase>.lock`, so a duplicate waits and
-//! then finds the work done. A task's index comes from its flags or its engine ([`index`]).
+//! (temp + rename), so a duplicated, retried or killed task changes nothing. The stitch holds an
+//! exclusive lock on the work directory's `stitch.lock`, and each partition part on
+//! `partition_<p>.lock`, so a duplicate waits and then finds the work done. The task that
+//! commits the last part commits the partition (`spill.done`); when none saw every part (an
+//! object store lists once per task), the first globals or tiles task does. A task's index comes from its flags or its engine ([`index`]).
 //! Progress is read from the committed files alone ([`status`]).
 //!
-//! Partition and stitch are one task each for now (the split by record range is a later step).
+//! The partition has one task per part ([`crate::tiling::plan::Plan::part_range`]: ranges of
+//! input records, for formats that can seek to a record; one part otherwise). The stitch is
+//! one task for now (writing the output in ranges is a later step).
 
 pub mod finish;
 pub mod frozen;

@@ -19,8 +19,8 @@ pub struct PhaseStatus {
     pub phase: Phase,
     /// Its task count (what an engine's array should have).
     pub tasks: u64,
-    /// Units of work (tiles for globals and tiles, 1 for partition and stitch, 0 when the
-    /// phase is not needed).
+    /// Units of work (parts for the partition, tiles for globals and tiles, 1 for the stitch,
+    /// 0 when the phase is not needed).
     pub units: u64,
     /// Units committed.
     pub committed: u64,

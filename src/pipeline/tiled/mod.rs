@@ -4,7 +4,7 @@
 //!
 //! ```text
 //!  plan        input ─────────────────────────▶ Plan             (plan.json)
-//!  partition   input, Plan ───────────────────▶ Partition        (tile_<t>.pts, spill.done)
+//!  partition   input, Plan ───────────────────▶ Partition        (part_<p>/tile_<t>.pts, spill.done)
 //!  globals     Plan, spill files ─────────────▶ Globals          (globals.json)
 //!  tiles       Plan, spill files, Globals ────▶ Tiles            (tile_<t>.res, tile_<t>.json)
 //!  threshold   Tiles' sums, result files ─────▶ Threshold
