@@ -21,9 +21,8 @@
 //! [`MAX_CELLS`], so the grid stays small for any input; coarser cells only make the test more
 //! conservative. Only the speed depends on the grid, never a result.
 
-use std::collections::HashMap;
-
 use glam::DVec3;
+use rustc_hash::FxHashMap;
 
 /// Most cells kept (about 40 MB at the worst); beyond it the cells double in size.
 pub const MAX_CELLS: usize = 1 << 20;
@@ -44,12 +43,12 @@ pub struct Occupancy {
     origin: DVec3,
     /// Points per non-empty cell.
     #[serde(with = "cells")]
-    counts: HashMap<[i64; 3], u64>,
+    counts: FxHashMap<[i64; 3], u64>,
 }
 
 /// Counts of the points one tile loaded, per cell of an [`Occupancy`] grid.
 #[derive(Debug, Clone, Default)]
-pub struct Loaded(HashMap<[i64; 3], u64>);
+pub struct Loaded(FxHashMap<[i64; 3], u64>);
 
 impl Occupancy {
     /// An empty grid of cells of `cell` (positive and finite) with a corner at `origin`.
@@ -58,7 +57,7 @@ impl Occupancy {
             base: cell,
             level: 0,
             origin,
-            counts: HashMap::new(),
+            counts: FxHashMap::default(),
         }
     }
 
@@ -225,7 +224,7 @@ impl Occupancy {
 
     /// The per-cell counts of `points` (what a tile loaded).
     pub fn loaded(&self, points: impl Iterator<Item = DVec3>) -> Loaded {
-        let mut m = HashMap::new();
+        let mut m = FxHashMap::default();
         for p in points {
             *m.entry(self.key(p)).or_insert(0u64) += 1;
         }
@@ -299,11 +298,10 @@ impl Occupancy {
 /// Serialises the cells as a sorted list (JSON keys must be strings, and sorted output is
 /// reproducible).
 mod cells {
-    use std::collections::HashMap;
-
+    use rustc_hash::FxHashMap;
     use serde::{Deserialize, Deserializer, Serialize, Serializer};
 
-    pub fn serialize<S: Serializer>(m: &HashMap<[i64; 3], u64>, s: S) -> Result<S::Ok, S::Error> {
+    pub fn serialize<S: Serializer>(m: &FxHashMap<[i64; 3], u64>, s: S) -> Result<S::Ok, S::Error> {
         let mut v: Vec<([i64; 3], u64)> = m.iter().map(|(k, n)| (*k, *n)).collect();
         v.sort_unstable();
         v.serialize(s)
@@ -311,7 +309,7 @@ mod cells {
 
     pub fn deserialize<'de, D: Deserializer<'de>>(
         d: D,
-    ) -> Result<HashMap<[i64; 3], u64>, D::Error> {
+    ) -> Result<FxHashMap<[i64; 3], u64>, D::Error> {
         Ok(Vec::<([i64; 3], u64)>::deserialize(d)?
             .into_iter()
             .collect())

@@ -218,13 +218,16 @@ impl WorkDir {
     /// # Errors
     /// Write failures.
     pub fn commit_parts(&self, plan: &Plan) -> Result<Option<u64>, IoError> {
+        // Every marker first: a task that commits one part of many reads no grid.
         let mut bytes = 0u64;
-        let mut merged: Option<Occupancy> = None;
         for part in 0..plan.parts() {
             let Some(done) = self.committed_part(part) else {
                 return Ok(None);
             };
             bytes += done.bytes;
+        }
+        let mut merged: Option<Occupancy> = None;
+        for part in 0..plan.parts() {
             if plan.isolation.is_some() {
                 let Some(o) = load_json::<Occupancy>(&self.part(part).join(OCCUPANCY_FILE)) else {
                     return Ok(None);
