@@ -570,6 +570,27 @@ impl Cursor {
     }
 }
 
+/// Calls `f` on every result of tiles `0..tiles` in `dir` (records with normals when `normals`),
+/// tile by tile: for what does not depend on the order, without a merge.
+///
+/// # Errors
+/// A missing or truncated result file.
+pub fn for_each_result(
+    dir: &Path,
+    tiles: usize,
+    normals: bool,
+    mut f: impl FnMut(&TileResult),
+) -> Result<(), TilingError> {
+    let record = result_record(normals);
+    for t in 0..tiles {
+        let mut one = ResultMerge::from_paths(&[result_path(dir, t)], record)?;
+        while let Some(r) = one.next_result()? {
+            f(&r);
+        }
+    }
+    Ok(())
+}
+
 /// Merges the result files of all tiles into one stream in global-index order.
 pub struct ResultMerge {
     cursors: Vec<Cursor>,

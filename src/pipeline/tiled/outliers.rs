@@ -6,7 +6,7 @@ use crate::geometry::ExactSum;
 use crate::pipeline::assemble::threshold as mean_plus_alpha_sigma;
 use crate::pipeline::{Job, OutlierMode, PipelineError};
 use crate::tiling::plan::Plan;
-use crate::tiling::spill::ResultMerge;
+use crate::tiling::spill::for_each_result;
 use crate::tiling::workdir::WorkDir;
 
 /// The outlier threshold of a run.
@@ -34,12 +34,11 @@ pub fn threshold(
     let value = mean_plus_alpha_sigma(sum, sq, job.spec.outlier_alpha);
     let mut removed = 0u64;
     if job.spec.outliers == OutlierMode::Remove {
-        let mut merge =
-            ResultMerge::open(work.path(), plan.tiles.len(), job.spec.params.write_normals)
-                .map_err(tiling_err)?;
-        while let Some(r) = merge.next_result().map_err(tiling_err)? {
-            removed += (r.knn_mean > value) as u64;
-        }
+        let normals = job.spec.params.write_normals;
+        for_each_result(work.path(), plan.tiles.len(), normals, |r| {
+            removed += u64::from(r.knn_mean > value);
+        })
+        .map_err(tiling_err)?;
     }
     Ok(Threshold { value, removed })
 }
