@@ -5,13 +5,13 @@
 //! scale-out job. A work directory holding the same plan keeps its committed parts, and a
 //! committed partition is reused as it is.
 
-use super::plan::Limits;
-use crate::pipeline::classes::Selection;
 use std::sync::atomic::{AtomicU64, Ordering};
 
 use rayon::prelude::*;
 
+use super::plan::Limits;
 use crate::io::IoError;
+use crate::pipeline::classes::Selection;
 use crate::pipeline::stream::{stream, stream_range};
 use crate::pipeline::{Job, PipelineError, RunOptions};
 use crate::points::PointBatch;
