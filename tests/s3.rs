@@ -29,7 +29,19 @@ struct Weed {
 }
 
 impl Weed {
+    /// Starts a server; again (at most twice more, with other ports) when one of the ports it
+    /// was given was taken between choosing it and binding it.
     fn start() -> Weed {
+        for _ in 0..2 {
+            if let Some(w) = Weed::try_start() {
+                return w;
+            }
+        }
+        Weed::try_start().expect("a free port was taken, again")
+    }
+
+    /// A started server, or `None` when it exited because a port was already in use.
+    fn try_start() -> Option<Weed> {
         let weed = std::env::var_os("QEMD_WEED")
             .map(PathBuf::from)
             .unwrap_or_else(|| PathBuf::from("weed"));
@@ -93,11 +105,14 @@ impl Weed {
         };
         let t = Instant::now();
         while TcpStream::connect(("127.0.0.1", s3)).is_err() {
-            assert!(
-                w.child.try_wait().unwrap().is_none(),
-                "weed server exited: {}",
-                w.log()
-            );
+            if w.child.try_wait().unwrap().is_some() {
+                let log = w.log();
+                assert!(
+                    log.contains("address already in use"),
+                    "weed server exited: {log}"
+                );
+                return None;
+            }
             assert!(t.elapsed() < START, "the S3 port never opened: {}", w.log());
             std::thread::sleep(Duration::from_millis(100));
         }
@@ -130,7 +145,7 @@ impl Weed {
             );
             std::thread::sleep(Duration::from_millis(500));
         }
-        w
+        Some(w)
     }
 
     fn log(&self) -> String {
