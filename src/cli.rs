@@ -312,8 +312,8 @@ pub struct RunFlags {
     pub tile_points: Option<u64>,
     /// Input records per partition part of a tiled run: parts are read side by side, and each is
     /// a task of `qemd worker --phase partition` (default 2000000, at most 4096 spill files;
-    /// LAS, seekable LAZ and binary PLY only, other formats use one part). Only the speed
-    /// depends on it.
+    /// LAS, LAZ with fixed-size chunks, binary PLY and PCD, raw .bin; other formats use one
+    /// part). Only the speed depends on it.
     #[arg(long)]
     pub part_points: Option<u64>,
     /// Configuration file (overrides config/default.toml; QEMD_* variables override it).

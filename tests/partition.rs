@@ -1,6 +1,7 @@
 //! Issue 11: the partition cut into parts — ranges of input records read side by side, each a
-//! task of `qemd worker --phase partition` — writes the bytes of a partition in one part; a
-//! format that cannot seek to a record (text, COPC's variable chunks) runs as one part.
+//! task of `qemd worker --phase partition` — writes the bytes of a partition in one part (binary
+//! PLY, PCD and KITTI here; LAS and LAZ from ../shared); a format that cannot seek to a record
+//! (text, COPC's variable chunks) runs as one part.
 
 use std::path::Path;
 
@@ -27,7 +28,9 @@ fn plan(d: &Path, input: &Path, flags: &[&str]) -> (u64, u64) {
 fn parts_change_no_byte(d: &Path, input: &Path, tile: &str, part: u64) -> u64 {
     let ext = input.extension().unwrap().to_string_lossy().into_owned();
     let part = part.to_string();
-    let flags = ["--tile-points", tile, "--outliers", "classify"];
+    // A KITTI record has no room for a flag: outliers go.
+    let outliers = if ext == "bin" { "remove" } else { "classify" };
+    let flags = ["--tile-points", tile, "--outliers", outliers];
     let run = |name: &str, more: &[&str]| {
         let out = d.join(format!("{name}.{ext}"));
         let mut args = vec!["denoise", s(input), "-o", s(&out), "-q"];
@@ -74,12 +77,19 @@ fn seek_reads_the_tail(input: &Path, at: u64) {
 }
 
 #[test]
-fn issue11_a_binary_ply_partitioned_in_parts_writes_the_bytes_of_one_part() {
+fn issue11_binary_ply_pcd_and_kitti_partitioned_in_parts_write_the_bytes_of_one_part() {
     let d = tempfile::tempdir().unwrap();
     let input = d.path().join("in.ply");
     surface(&input, 30_000);
     seek_reads_the_tail(&input, 12_345);
     assert_eq!(parts_change_no_byte(d.path(), &input, "3000", 4_000), 8);
+    // PCD (binary) and KITTI `.bin` have fixed records too.
+    for name in ["in.pcd", "in.bin"] {
+        let path = d.path().join(name);
+        surface(&path, 30_000);
+        seek_reads_the_tail(&path, 20_001);
+        assert_eq!(parts_change_no_byte(d.path(), &path, "3000", 4_000), 8);
+    }
     // Text cannot seek to a record: one part, whatever the flag asks.
     let xyz = d.path().join("in.xyz");
     surface(&xyz, 30_000);

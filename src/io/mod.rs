@@ -513,8 +513,8 @@ pub trait Source: Send {
     fn read_batch(&mut self, batch: &mut PointBatch, max: usize) -> Result<usize, IoError>;
 
     /// Moves to point `index` (at most the count), so that the next batch starts there, when
-    /// the format can without reading the points before it (fixed-size records, a LAZ chunk
-    /// table of fixed-size chunks). Returns false, having moved nothing, when it cannot: the
+    /// the format can without reading the points before it (fixed-size records: LAS, binary PLY
+    /// and PCD, raw `.bin`; a LAZ chunk table of fixed-size chunks). Returns false, having moved nothing, when it cannot: the
     /// caller reads from the start. A range read this way is a task of a parallel partition.
     ///
     /// # Errors

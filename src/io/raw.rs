@@ -336,6 +336,19 @@ impl Source for RawSource {
         &self.info
     }
 
+    fn seek_point(&mut self, index: u64) -> Result<bool, IoError> {
+        if index > self.total {
+            return Ok(false);
+        }
+        std::io::Seek::seek(
+            &mut self.reader,
+            std::io::SeekFrom::Start(index * self.record_len as u64),
+        )
+        .map_err(|e| IoError::io(&self.info.path, e))?;
+        self.read = index;
+        Ok(true)
+    }
+
     fn read_batch(&mut self, batch: &mut PointBatch, max: usize) -> Result<usize, IoError> {
         let rl = self.record_len;
         batch.clear(self.read);

@@ -287,6 +287,8 @@ pub struct PcdSource {
     /// Compressed: the decompressed column-major block and its layout.
     block: Vec<u8>,
     columns: Option<Columns>,
+    /// Binary: where the point records start, when the input can seek.
+    data_start: Option<u64>,
 }
 
 impl PcdSource {
@@ -379,6 +381,10 @@ impl PcdSource {
             faces: None,
             meta: Meta::Pcd(PcdMeta { header, data: kind }),
         };
+        let data_start = match kind {
+            PcdData::Binary => std::io::Seek::stream_position(&mut reader).ok(),
+            PcdData::Ascii | PcdData::BinaryCompressed => None,
+        };
         Ok(PcdSource {
             info,
             reader,
@@ -391,6 +397,7 @@ impl PcdSource {
             text: Vec::new(),
             block,
             columns,
+            data_start,
         })
     }
 
@@ -537,6 +544,20 @@ fn read_block(
 impl Source for PcdSource {
     fn info(&self) -> &SourceInfo {
         &self.info
+    }
+
+    fn seek_point(&mut self, index: u64) -> Result<bool, IoError> {
+        let Some(start) = self.data_start.filter(|_| index <= self.total) else {
+            return Ok(false);
+        };
+        let rl = self.info.schema.record_len as u64;
+        std::io::Seek::seek(
+            &mut self.reader,
+            std::io::SeekFrom::Start(start + index * rl),
+        )
+        .map_err(|e| IoError::io(&self.info.path, e))?;
+        self.read = index;
+        Ok(true)
     }
 
     fn read_batch(&mut self, batch: &mut PointBatch, max: usize) -> Result<usize, IoError> {
