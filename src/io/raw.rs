@@ -32,6 +32,7 @@
 use std::io::{BufReader, Read, Write};
 use std::path::Path;
 
+use super::reader::seek_record;
 use super::tally::{Tally, check_batch};
 use super::{AtomicFile, Extras, Format, Input, IoError, Meta, Sink, Source, SourceInfo};
 use crate::points::{Endian, PointBatch, ScalarType, Schema};
@@ -340,11 +341,8 @@ impl Source for RawSource {
         if index > self.total {
             return Ok(false);
         }
-        std::io::Seek::seek(
-            &mut self.reader,
-            std::io::SeekFrom::Start(index * self.record_len as u64),
-        )
-        .map_err(|e| IoError::io(&self.info.path, e))?;
+        let records = (0, self.record_len);
+        seek_record(&mut self.reader, &self.info.path, records, index)?;
         self.read = index;
         Ok(true)
     }

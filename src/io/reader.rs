@@ -175,6 +175,23 @@ impl Seek for Input {
     }
 }
 
+/// Moves `reader` to record `index` of the fixed `record_len`-byte records that start at byte
+/// `start` of `path` (how [`super::Source::seek_point`] seeks in a fixed-record format).
+///
+/// # Errors
+/// The seek fails.
+pub(crate) fn seek_record(
+    reader: &mut std::io::BufReader<Input>,
+    path: &Path,
+    (start, record_len): (u64, usize),
+    index: u64,
+) -> Result<(), IoError> {
+    reader
+        .seek(SeekFrom::Start(start + index * record_len as u64))
+        .map(|_| ())
+        .map_err(|e| IoError::io(path, e))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -12,7 +12,7 @@ use super::layout::{
     min_header_size,
 };
 use super::{LasMeta, LasTrailer, LasVlr, Piece, guarded, laz_error, laz_io_error, read_at};
-use crate::io::reader::Reopener;
+use crate::io::reader::{Reopener, seek_record};
 use crate::io::{Extras, Format, Input, IoError, Meta, Source, SourceInfo, Trailer};
 use crate::points::PointBatch;
 
@@ -533,12 +533,9 @@ impl Source for LasSource {
             return Ok(false);
         }
         let path = &self.info.path;
-        let rl = self.info.schema.record_len as u64;
+        let records = (self.data_start, self.info.schema.record_len);
         match &mut self.points {
-            Points::Plain(r) => {
-                r.seek(SeekFrom::Start(self.data_start + index * rl))
-                    .map_err(|e| IoError::io(path, e))?;
-            }
+            Points::Plain(r) => seek_record(r, path, records, index)?,
             // The decompressor cannot seek to the end of its last chunk: nothing is left to
             // read there anyway.
             Points::Laz(_) if index == self.total => {}

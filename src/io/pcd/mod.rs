@@ -82,6 +82,7 @@ pub use header::{PcdData, PcdField};
 use self::body::{Columns, parse_value, push_value};
 use self::header::{DEFAULT_VIEWPOINT, Header};
 use super::lines::{LineEnding, show, tokens};
+use super::reader::seek_record;
 use super::tally::{Tally, check_batch};
 use super::{
     AtomicFile, Extras, Format, Input, IoError, Meta, NormalField, NormalNames, Sink, SinkOptions,
@@ -550,12 +551,8 @@ impl Source for PcdSource {
         let Some(start) = self.data_start.filter(|_| index <= self.total) else {
             return Ok(false);
         };
-        let rl = self.info.schema.record_len as u64;
-        std::io::Seek::seek(
-            &mut self.reader,
-            std::io::SeekFrom::Start(start + index * rl),
-        )
-        .map_err(|e| IoError::io(&self.info.path, e))?;
+        let records = (start, self.info.schema.record_len);
+        seek_record(&mut self.reader, &self.info.path, records, index)?;
         self.read = index;
         Ok(true)
     }

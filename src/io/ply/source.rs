@@ -7,6 +7,7 @@ use std::path::Path;
 use super::body::{self, FaceTarget, PosCodec, Walker, eof, faces_digest, parse_ascii};
 use super::header::{self, PlyElement, PlyEncoding, PlyType};
 use super::{PlyMeta, PlyTrailer, READ_BUF};
+use crate::io::reader::seek_record;
 use crate::io::{Extras, Input, IoError, Meta, Source, SourceInfo, Trailer};
 use crate::points::{Faces, PointBatch, Schema};
 
@@ -366,12 +367,8 @@ impl Source for PlySource {
         let Some(start) = self.vertex_start.filter(|_| index <= self.count) else {
             return Ok(false);
         };
-        let rl = self.info.schema.record_len as u64;
-        std::io::Seek::seek(
-            &mut self.reader,
-            std::io::SeekFrom::Start(start + index * rl),
-        )
-        .map_err(|e| IoError::io(&self.info.path, e))?;
+        let records = (start, self.info.schema.record_len);
+        seek_record(&mut self.reader, &self.info.path, records, index)?;
         self.read = index;
         Ok(true)
     }
