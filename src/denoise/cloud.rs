@@ -91,6 +91,23 @@ impl GlobalsPartial {
     }
 }
 
+/// The noise pre-pass reads every point of a cloud of up to twice this many finite points, and
+/// a sample of about this many (at least) of a larger one ([`in_noise_sample`]).
+pub const NOISE_SAMPLE: u64 = 1 << 16;
+
+/// True when the point of global index `index`, in a cloud of `points` finite points, is one the
+/// guarded operator's noise ([`Globals::noise`]) is the median over: every point of a cloud of
+/// fewer than `2 × NOISE_SAMPLE`, otherwise one in `points / NOISE_SAMPLE` (by
+/// [`crate::points::sample_key`], so the sample depends on nothing but the indices: every tile
+/// and the in-memory path draw the same one). Why: the median of 65 536 residuals or more moves
+/// by well under 1 % from the full one, and in a tiled run the pre-pass was a fifth of the CPU
+/// time, a whole k-NN pass of its own (docs/DECISIONS.md, "The noise pre-pass on a sample").
+/// The bilateral spacing, a mean, still reads every point.
+pub fn in_noise_sample(index: u64, points: u64) -> bool {
+    let stride = (points / NOISE_SAMPLE).max(1);
+    stride == 1 || crate::points::sample_key(index) % stride == 0
+}
+
 /// True when `params` need [`Globals`] (a pre-pass over the whole cloud).
 pub fn needs_globals(params: &Params) -> bool {
     params.method == Method::Bilateral || guarded_qem(params)
@@ -109,19 +126,40 @@ fn guarded_qem(params: &Params) -> bool {
 ///
 /// # Errors
 /// Fewer than two points.
+///
+/// For the guarded operator only the points of the noise sample ([`in_noise_sample`], over a
+/// cloud of `points` finite points) are listed and counted; the others are reported exact, as
+/// nothing of theirs is summed.
 pub fn globals_partial(
     run: &CloudRun,
     params: &Params,
-    counted: impl Fn(usize, bool) -> bool,
+    points: u64,
+    counted: impl Fn(usize, bool) -> bool + Sync,
 ) -> Result<(GlobalsPartial, Vec<bool>), DenoiseError> {
     let kg = globals_k(params);
-    let g = graph(run, kg, 0)?;
-    let exact_f = taint(run, &g, 0);
+    let sampled: Option<Vec<bool>> = guarded_qem(params).then(|| {
+        (0..run.positions.len())
+            .map(|i| run.wanted.is_none_or(|w| w[i]) && in_noise_sample(run.ties[i], points))
+            .collect()
+    });
+    let run = CloudRun {
+        wanted: sampled.as_deref().or(run.wanted),
+        ..*run
+    };
+    let g = graph(&run, kg, 0)?;
+    let exact_f = taint(&run, &g, 0);
     let mut exact = vec![false; run.positions.len()];
     for (j, &i) in g.frame.order.iter().enumerate() {
         exact[i as usize] = !exact_f[j];
     }
-    let part = partial_of(params, &g, kg, |i| counted(i, exact[i]));
+    let part = partial_of(params, &g, kg, |i| {
+        sampled.as_ref().is_none_or(|s| s[i]) && counted(i, exact[i])
+    });
+    if let Some(s) = &sampled {
+        for (e, &s) in exact.iter_mut().zip(s) {
+            *e |= !s;
+        }
+    }
     Ok((part, exact))
 }
 
@@ -149,21 +187,30 @@ fn partial_of(
     params: &Params,
     g: &Graph,
     kg: usize,
-    counted: impl Fn(usize) -> bool,
+    counted: impl Fn(usize) -> bool + Sync,
 ) -> GlobalsPartial {
     let (frame, lists) = (&g.frame, &g.lists);
-    let near = if guarded_qem(params) {
-        super::structure::near_residuals(&frame.positions, lists)
+    // An isolated point has no spacing or noise of its own: it is never smoothed.
+    let take =
+        |j: usize| counted(frame.order[j] as usize) && !(g.isolated[j] && lists.get(j).len() < kg);
+    // Residuals of the counted points only (a sample of a large cloud), in parallel.
+    let near: Vec<Option<f64>> = if guarded_qem(params) {
+        (0..frame.positions.len())
+            .into_par_iter()
+            .with_min_len(1024)
+            .map(|j| {
+                take(j).then(|| super::structure::near_residual(&frame.positions, lists.get(j), j))
+            })
+            .collect()
     } else {
         Vec::new()
     };
     let mut part = GlobalsPartial::default();
-    for (j, &i) in frame.order.iter().enumerate() {
-        let list = lists.get(j);
-        // An isolated point has no spacing or noise of its own: it is never smoothed.
-        if !counted(i as usize) || (g.isolated[j] && list.len() < kg) {
+    for j in 0..frame.positions.len() {
+        if !take(j) {
             continue;
         }
+        let list = lists.get(j);
         if params.method == Method::Bilateral
             && let Some(&u) = list[..list.len().min(kg)]
                 .iter()
@@ -171,7 +218,7 @@ fn partial_of(
         {
             part.spacing.add(g.index.dist2(j, u as usize).sqrt());
         }
-        if let Some(&r) = near.get(j) {
+        if let Some(&Some(r)) = near.get(j) {
             part.noise.add(r);
         }
     }
@@ -692,10 +739,14 @@ pub fn run_all_with(
             }
             e => e,
         })?;
-        let globals = partial_of(params, &g, kg, |_| true).finish();
+        let n = pts.len() as u64;
+        let sample = |i: usize| !guarded_qem(params) || in_noise_sample(ties[i], n);
+        let globals = partial_of(params, &g, kg, sample).finish();
         run_on(&r, params, &globals, g, timer)?
     } else {
-        let globals = globals_partial(&r, params, |_, _| true)?.0.finish();
+        let globals = globals_partial(&r, params, pts.len() as u64, |_, _| true)?
+            .0
+            .finish();
         run_on(&r, params, &globals, graph(&r, k, 0)?, timer)?
     };
     let mut stats = Stats::default();
@@ -790,11 +841,55 @@ mod tests {
                 .count();
             assert_eq!(capped, 10, "{:?}", params.method);
             let counted = |i: usize| !i.is_multiple_of(5);
-            let separate = globals_partial(&run, &params, |i, _| counted(i)).unwrap().0;
+            let n = pts.len() as u64;
+            let separate = globals_partial(&run, &params, n, |i, _| counted(i))
+                .unwrap()
+                .0;
             let shared = partial_of(&params, &g, kg, counted);
             assert_eq!(shared, separate, "{:?}", params.method);
             assert!(separate.noise.count > 0 || separate.spacing.count() > 0);
         }
+    }
+
+    #[test]
+    fn issue16_the_noise_of_a_large_cloud_is_the_median_over_its_sample_whichever_pass_lists_it() {
+        let pts = issue9_cloud();
+        let ties: Vec<u64> = (0..pts.len() as u64).collect();
+        let origin = crate::denoise::origin_of(&pts);
+        let run = CloudRun {
+            positions: &pts,
+            ties: &ties,
+            origin,
+            region: None,
+            isolation: crate::denoise::isolation::of_cloud(&pts, &ties, origin, 16),
+            short_lists: false,
+            complete: None,
+            wanted: None,
+            held: None,
+        };
+        let params = Params::default();
+        // As if the cloud had 4 × NOISE_SAMPLE points: one in four is sampled.
+        let n = 4 * NOISE_SAMPLE;
+        let sampled = |i: usize| in_noise_sample(ties[i], n);
+        let share = (0..pts.len()).filter(|&i| sampled(i)).count() as f64 / pts.len() as f64;
+        assert!((0.2..0.3).contains(&share), "{share}");
+        // The in-memory path: the operator's 16-NN lists, the sample counted.
+        let g = graph(&run, params.k(), 0).unwrap();
+        let shared = partial_of(&params, &g, crate::denoise::structure::NEAR, sampled);
+        // The pre-pass of a tile: only the sampled points listed (at their 8 nearest).
+        let (separate, exact) = globals_partial(&run, &params, n, |_, _| true).unwrap();
+        assert_eq!(shared, separate);
+        let in_sample = (0..pts.len()).filter(|&i| sampled(i)).count() as u64;
+        assert!(separate.noise.count <= in_sample && 2 * separate.noise.count > in_sample);
+        assert!(
+            exact.iter().all(|&e| e),
+            "points out of the sample are done"
+        );
+        // A small cloud is read whole.
+        let whole = globals_partial(&run, &params, pts.len() as u64, |_, _| true)
+            .unwrap()
+            .0;
+        assert!(whole.noise.count > 3 * in_sample);
     }
 
     #[test]

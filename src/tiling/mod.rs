@@ -212,7 +212,7 @@ pub fn globals_of_tile(
         |pts, run| {
             // Only the exact owned contributions are summed: the others are redone with a larger
             // halo.
-            cloud::globals_partial(run, params, |i, exact| pts[i].owned && exact)
+            cloud::globals_partial(run, params, plan.finite, |i, exact| pts[i].owned && exact)
                 .map_err(|e| TilingError::Denoise { tile: t, error: e })
         },
     )?;
