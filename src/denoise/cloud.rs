@@ -44,7 +44,7 @@ use super::structure::{Structure, classify, local_fits, noise_scale};
 use super::written::of_cycle;
 use super::{DenoiseError, Method, Params, Stats, StructureCounts, Timer, bilateral, qem};
 use crate::geometry::ExactSum;
-use crate::neighbours::{KnnIndex, Neighbourhoods, NeighboursError};
+use crate::neighbours::{KnnIndex, Neighbourhoods, NeighboursError, keep_near};
 use crate::points::{Aabb, PointNormal};
 
 /// Scalars computed over the whole cloud before the operator runs.
@@ -341,22 +341,29 @@ struct Graph {
     listed: Vec<bool>,
 }
 
-/// [`CloudRun::wanted`] points are listed alone (with what they depend on) only when they are at
-/// most this share of the run: every further hop costs a grid pass over the whole run.
+/// [`CloudRun::wanted`] points are listed round by round (with what they depend on) only when
+/// they are at most this share of the run: every further hop costs a grid pass over the whole
+/// run. Above it every list is computed in one pass and those no wanted point depends on are
+/// dropped ([`keep_near`]).
 const WANTED_SHARE: f64 = 0.25;
 
-/// Builds the k-NN graph of a run in spatial order; with [`CloudRun::wanted`] points few enough,
-/// only the lists within `hops` hops of them.
+/// Builds the k-NN graph of a run in spatial order; with [`CloudRun::wanted`] points, only the
+/// lists within `hops` hops of them (the others' results are not exact, and cost nothing in the
+/// passes that follow).
 fn graph(run: &CloudRun, k: usize, hops: usize) -> Result<Graph, DenoiseError> {
     let frame = Frame::new(run.positions, Some(run.ties));
     let index = KnnIndex::build_with_ties(&frame.positions, run.origin, frame.ties.clone())?;
-    let seeds: Option<Vec<bool>> = run.wanted.and_then(|w| {
+    let seeds: Option<(Vec<bool>, bool)> = run.wanted.map(|w| {
         let n = w.iter().filter(|&&x| x).count();
-        (n as f64 <= WANTED_SHARE * w.len() as f64)
-            .then(|| frame.order.iter().map(|&i| w[i as usize]).collect())
+        let few = n as f64 <= WANTED_SHARE * w.len() as f64;
+        (frame.order.iter().map(|&i| w[i as usize]).collect(), few)
     });
     let (lists, radii, listed) = match seeds {
-        Some(s) => index.knn_near(k, &s, hops)?,
+        Some((s, true)) => index.knn_near(k, &s, hops)?,
+        Some((s, false)) => {
+            let (lists, radii) = index.knn_all(k)?;
+            keep_near(lists, radii, &s, hops)
+        }
         None => {
             let (lists, radii) = index.knn_all(k)?;
             (lists, radii, Vec::new())

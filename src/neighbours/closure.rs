@@ -94,6 +94,55 @@ impl KnnIndex {
     }
 }
 
+/// Keeps, of the complete lists `lists` (and `radii`, as [`KnnIndex::knn_all`] gives them), those
+/// of the points within `hops` hops of a seed: the lists and radii [`KnnIndex::knn_near`] gives,
+/// bit for bit, and which points are listed (empty when all are). Where the seeds are many, one
+/// grid pass over every point and a walk over the graph cost less than a pass per hop, and every
+/// later pass of the operator skips the points no seed depends on (docs/DECISIONS.md, "A tile
+/// computes only what its owned results depend on").
+pub fn keep_near(
+    lists: Neighbourhoods,
+    radii: Vec<f64>,
+    seeds: &[bool],
+    hops: usize,
+) -> (Neighbourhoods, Vec<f64>, Vec<bool>) {
+    let n = seeds.len();
+    let mut listed = seeds.to_vec();
+    let mut frontier: Vec<u32> = (0..n as u32).filter(|&i| seeds[i as usize]).collect();
+    for _ in 0..hops {
+        let mut next = Vec::new();
+        for &i in &frontier {
+            for &u in lists.get(i as usize) {
+                if !listed[u as usize] {
+                    listed[u as usize] = true;
+                    next.push(u);
+                }
+            }
+        }
+        if next.is_empty() {
+            break;
+        }
+        frontier = next;
+    }
+    if listed.iter().all(|&l| l) {
+        return (lists, radii, Vec::new());
+    }
+    let mut offsets = Vec::with_capacity(n + 1);
+    offsets.push(0u32);
+    let mut indices = Vec::with_capacity(lists.indices.len());
+    let mut radii = radii;
+    for i in 0..n {
+        if listed[i] {
+            indices.extend_from_slice(lists.get(i));
+        } else {
+            indices.push(i as u32);
+            radii[i] = 0.0;
+        }
+        offsets.push(indices.len() as u32);
+    }
+    (Neighbourhoods { offsets, indices }, radii, listed)
+}
+
 #[cfg(test)]
 mod tests {
     use glam::DVec3;
@@ -187,5 +236,54 @@ mod tests {
         let (nb, _, listed) = index.knn_near(8, &seeds, 5).unwrap();
         assert!(listed.iter().all(|&l| l));
         assert_eq!(nb, all);
+    }
+
+    /// Dropping the lists no seed depends on from the all-points graph keeps exactly the points
+    /// within `hops` hops of a seed, with their all-points lists and radii bit for bit (what the
+    /// rounds give below half the points listed).
+    #[test]
+    fn issue16_kept_lists_of_the_whole_graph_are_those_within_the_hops() {
+        let pts = cloud();
+        let index = KnnIndex::build(&pts, DVec3::ZERO).unwrap();
+        let (all, all_r) = index.knn_all(8).unwrap();
+        let seeds_of: [&dyn Fn(usize) -> bool; 3] = [
+            &|i| i < 3600 && i % 60 < 4 && i / 60 < 4,
+            &|i| i >= 3600 && i % 50 == 0,
+            &|i| i % 60 < 30,
+        ];
+        for (s, seeds_at) in seeds_of.iter().enumerate() {
+            let seeds: Vec<bool> = (0..pts.len()).map(seeds_at).collect();
+            for hops in 0..5 {
+                let (nb, radii, listed) = keep_near(all.clone(), all_r.clone(), &seeds, hops);
+                let want = within_hops(&all, &seeds, hops);
+                if want.iter().all(|&w| w) {
+                    assert!(listed.is_empty(), "seeds {s}, hops {hops}");
+                    assert_eq!(nb, all);
+                    continue;
+                }
+                let wrong = (0..pts.len()).filter(|&i| listed[i] != want[i]).count();
+                assert_eq!(wrong, 0, "seeds {s}, hops {hops}");
+                if s == 0 {
+                    let (near, near_r, near_listed) = index.knn_near(8, &seeds, hops).unwrap();
+                    assert_eq!(near_listed, listed);
+                    assert_eq!(near, nb);
+                    assert!(
+                        near_r
+                            .iter()
+                            .zip(&radii)
+                            .all(|(a, b)| a.to_bits() == b.to_bits())
+                    );
+                }
+                for i in 0..pts.len() {
+                    if listed[i] {
+                        assert_eq!(nb.get(i), all.get(i), "seeds {s}, hops {hops}, point {i}");
+                        assert_eq!(radii[i].to_bits(), all_r[i].to_bits());
+                    } else {
+                        assert_eq!(nb.get(i), &[i as u32]);
+                        assert_eq!(radii[i], 0.0);
+                    }
+                }
+            }
+        }
     }
 }

@@ -31,6 +31,7 @@
 pub mod brute;
 mod cancel;
 mod closure;
+pub use closure::keep_near;
 mod grid;
 mod mesh;
 
