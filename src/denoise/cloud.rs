@@ -105,7 +105,7 @@ pub const NOISE_SAMPLE: u64 = 1 << 16;
 /// The bilateral spacing, a mean, still reads every point.
 pub fn in_noise_sample(index: u64, points: u64) -> bool {
     let stride = (points / NOISE_SAMPLE).max(1);
-    stride == 1 || crate::points::sample_key(index) % stride == 0
+    crate::points::sample_key(index).is_multiple_of(stride)
 }
 
 /// True when `params` need [`Globals`] (a pre-pass over the whole cloud).
