@@ -37,6 +37,12 @@ fn is_part_marker(name: &str) -> bool {
     in_part(name) == Some(crate::tiling::workdir::PART_DONE)
 }
 
+/// A part's occupancy grid (`part_<p>/occupancy.json`): read only to merge the partition's grid,
+/// so not downloaded once the partition is committed (31 grids of 6.7 MB each at 100 M points).
+pub fn is_part_grid(name: &str) -> bool {
+    in_part(name) == Some(crate::tiling::workdir::OCCUPANCY_FILE)
+}
+
 /// Files that stay in the scratch directory: locks and the owner file (local coordination),
 /// temporary files (names starting with `.`), the stitch's intermediate merges.
 fn is_local(name: &str) -> bool {
@@ -65,7 +71,8 @@ pub fn is_base(name: &str) -> bool {
 /// - partition: the input, and the parts' markers (to skip committed parts);
 /// - globals: every part's files, i.e. every spill file with its block table (halo growth
 ///   reads by block), the parts' occupancy grids and markers (a task that finds the partition
-///   not committed but all its parts commits it), and every tile's partial sums;
+///   not committed but all its parts commits it; [`run_task`](super::run_task) skips the grids
+///   once it is), and every tile's partial sums;
 /// - tiles: the same, and the results and outcomes of the task's own tiles (`own`, to skip the
 ///   committed ones);
 /// - stitch: every result and outcome, and the input (not the spill files).
@@ -305,6 +312,9 @@ mod tests {
             assert!(!wanted(Phase::Stitch, n, &own), "{n}");
         }
         assert!(!wanted(Phase::Tiles, "part_x/tile_00001.pts", &own));
+        assert!(is_part_grid("part_0002/occupancy.json"));
+        assert!(!is_part_grid("occupancy.json"));
+        assert!(!is_part_grid("part_0002/part.json"));
         assert!(!wanted(Phase::Globals, "input/a.las", &own));
         assert!(wanted(Phase::Tiles, "tile_00003.res", &own));
         assert!(wanted(Phase::Tiles, "tile_00003.json", &own));

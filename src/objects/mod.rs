@@ -212,8 +212,12 @@ pub fn run_task(
         });
     }
     let start = std::time::Instant::now();
+    let partitioned = m.remote(crate::tiling::workdir::PARTITION_DONE).is_some();
     m.pull(
-        |n| wanted(phase, n, &|t| own.get(t).copied().unwrap_or(false)),
+        |n| {
+            wanted(phase, n, &|t| own.get(t).copied().unwrap_or(false))
+                && !(partitioned && mirror::is_part_grid(n))
+        },
         &cancelled,
     )?;
     let r = scaleout::run_task(&local(&m), phase, index, env, hooks)?;
