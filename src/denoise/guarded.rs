@@ -98,6 +98,10 @@ fn agree(r: f64, s: f64) -> f64 {
         // A noise-free voter agrees only exactly.
         return if r == 0.0 { 1.0 } else { 0.0 };
     }
+    if r == 0.0 {
+        // exp(−0) is 1 exactly: the point's own plane (2 of 32 calls a point) skips the call.
+        return 1.0;
+    }
     let t = r / (AGREE * s);
     (-0.5 * t * t).exp()
 }
