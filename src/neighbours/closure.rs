@@ -144,8 +144,9 @@ pub fn keep_near(
         .into_par_iter()
         .map(|b| {
             let (mut lens, mut idx) = (Vec::with_capacity(BLOCK), Vec::new());
-            for i in b * BLOCK..((b + 1) * BLOCK).min(n) {
-                if listed[i] {
+            let start = b * BLOCK;
+            for (i, &l) in listed.iter().enumerate().skip(start).take(BLOCK) {
+                if l {
                     idx.extend_from_slice(lists.get(i));
                 } else {
                     idx.push(i as u32);
