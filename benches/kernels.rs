@@ -257,7 +257,11 @@ fn guarded_stages(c: &mut Criterion) {
     };
     // The first update of a cycle: `&mut None` has its gains computed.
     g.bench_function("guarded_update", |b| {
-        b.iter(|| black_box(guarded::step(&pts, &lists, &guard, &params, &mut None)))
+        b.iter(|| {
+            black_box(guarded::step(
+                &pts, &lists, &guard, &params, &mut None, None,
+            ))
+        })
     });
     g.finish();
 }

@@ -157,11 +157,11 @@ fn main() -> anyhow::Result<()> {
     };
     time("update", &mut || {
         let mut gain = None;
-        let s1: Vec<DVec3> = guarded::step(&pts, &lists, &guard, &params, &mut gain)
+        let s1: Vec<DVec3> = guarded::step(&pts, &lists, &guard, &params, &mut gain, None)
             .into_iter()
             .map(|s| s.0)
             .collect();
-        let s2: Vec<DVec3> = guarded::step(&s1, &lists, &guard, &params, &mut gain)
+        let s2: Vec<DVec3> = guarded::step(&s1, &lists, &guard, &params, &mut gain, None)
             .into_iter()
             .map(|s| s.0)
             .collect();

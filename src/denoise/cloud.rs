@@ -386,6 +386,37 @@ fn graph(run: &CloudRun, k: usize, hops: usize) -> Result<Graph, DenoiseError> {
     })
 }
 
+/// Each point's number of hops from a seed along `lists` (a point `u` in the list of a point at
+/// depth `d` is at most at depth `d + 1`), counted up to `most`; `u8::MAX` beyond.
+fn hop_depths(lists: &Neighbourhoods, seeds: &[bool], most: usize) -> Vec<u8> {
+    let mut depth: Vec<u8> = seeds.iter().map(|&s| if s { 0 } else { u8::MAX }).collect();
+    let mut frontier: Vec<u32> = (0..seeds.len() as u32)
+        .filter(|&i| seeds[i as usize])
+        .collect();
+    for d in 1..=most.min(u8::MAX as usize - 1) {
+        let mut next = Vec::new();
+        for &i in &frontier {
+            for &u in lists.get(i as usize) {
+                if depth[u as usize] == u8::MAX {
+                    depth[u as usize] = d as u8;
+                    next.push(u);
+                }
+            }
+        }
+        frontier = next;
+    }
+    depth
+}
+
+/// The points update `u` (of `updates`, from 0) of the last cycle must move for the wanted points'
+/// results: the update after it reads the positions of its list members, one hop further, so
+/// update `u` is needed within `updates − 1 − u` hops; the first update's offsets also give the
+/// gains, which read the offsets of the list (one hop more). Elsewhere nothing reads the result.
+fn update_reach(depth: &[u8], updates: usize, u: usize) -> Vec<bool> {
+    let reach = updates - 1 - u + usize::from(u == 0);
+    depth.iter().map(|&d| (d as usize) <= reach).collect()
+}
+
 /// True where the k-NN ball of a point lies strictly inside `region` (so its list is complete).
 fn inside(region: &Aabb, p: DVec3, r2: f64) -> bool {
     let lo = p - region.min;
@@ -514,6 +545,11 @@ fn run_on(
     check_cancel()?;
 
     let sched = params.schedule(false);
+    // Hops from the wanted points (frame order), up to the last cycle's updates' reach.
+    let depth: Option<Vec<u8>> = run.wanted.filter(|_| guard).map(|w| {
+        let seeds: Vec<bool> = frame.order.iter().map(|&i| w[i as usize]).collect();
+        hop_depths(&lists, &seeds, sched.updates)
+    });
     let mut cur = frame.positions.clone();
     let mut stayed = vec![0u8; n];
     let mut degenerate = vec![false; n];
@@ -587,8 +623,14 @@ fn run_on(
                 max_move: params.max_move,
             };
             let mut gain = None;
-            for _ in 0..sched.updates {
-                let step = guarded::step(&cur, &lists, &g, params, &mut gain);
+            let last = pass + 1 == sched.cycles;
+            for u in 0..sched.updates {
+                // The last cycle's updates only where a wanted result depends on them.
+                let active = match (&depth, last) {
+                    (Some(d), true) => Some(update_reach(d, sched.updates, u)),
+                    _ => None,
+                };
+                let step = guarded::step(&cur, &lists, &g, params, &mut gain, active.as_deref());
                 cur = merge_step(step, &mut stayed);
                 hold(&mut cur, &mut stayed);
                 check_cancel()?;

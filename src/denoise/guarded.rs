@@ -153,12 +153,16 @@ fn offsets(
     lists: &Neighbourhoods,
     g: &Guard,
     params: &Params,
+    active: Option<&[bool]>,
 ) -> Vec<(Option<DVec3>, u8)> {
     (0..pos.len())
         .into_par_iter()
         .with_min_len(1024)
         .map(|i| {
             let v = pos[i];
+            if active.is_some_and(|a| !a[i]) {
+                return (None, 0);
+            }
             if !v.is_finite() || !g.classes[i].moves() || g.bound[i] <= 0.0 {
                 return (None, 0);
             }
@@ -222,18 +226,19 @@ pub fn gains(lists: &Neighbourhoods, g: &Guard, offs: &[(Option<DVec3>, u8)]) ->
         .collect()
 }
 
-/// One guarded update of every point: the new position and why it stayed or was clamped
-/// ([`stay`] flags). The first update of a cycle (`gain` is `None`) computes the gains from its
-/// offsets and stores them; later updates reuse them, since their offsets no longer carry the
-/// scan's noise.
+/// One guarded update of every point (of the `active` ones; the others stay where they are):
+/// the new position and why it stayed or was clamped ([`stay`] flags). The first update of a
+/// cycle (`gain` is `None`) computes the gains from its offsets and stores them; later updates
+/// reuse them, since their offsets no longer carry the scan's noise.
 pub fn step(
     pos: &[DVec3],
     lists: &Neighbourhoods,
     g: &Guard,
     params: &Params,
     gain: &mut Option<Vec<f64>>,
+    active: Option<&[bool]>,
 ) -> Vec<(DVec3, u8)> {
-    let offs = offsets(pos, lists, g, params);
+    let offs = offsets(pos, lists, g, params, active);
     let gs: &[f64] = gain.get_or_insert_with(|| gains(lists, g, &offs));
     (0..pos.len())
         .into_par_iter()
