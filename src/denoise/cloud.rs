@@ -124,12 +124,12 @@ fn guarded_qem(params: &Params) -> bool {
 /// run the pass again once it knew which were exact: twice the cost of every tile with a
 /// narrowed halo).
 ///
-/// # Errors
-/// Fewer than two points.
-///
 /// For the guarded operator only the points of the noise sample ([`in_noise_sample`], over a
 /// cloud of `points` finite points) are listed and counted; the others are reported exact, as
 /// nothing of theirs is summed.
+///
+/// # Errors
+/// Fewer than two points.
 pub fn globals_partial(
     run: &CloudRun,
     params: &Params,

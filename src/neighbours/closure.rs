@@ -97,8 +97,9 @@ impl KnnIndex {
 }
 
 /// Keeps, of the complete lists `lists` (and `radii`, as [`KnnIndex::knn_all`] gives them), those
-/// of the points within `hops` hops of a seed: the lists and radii [`KnnIndex::knn_near`] gives,
-/// bit for bit, and which points are listed (empty when all are). Where the seeds are many, one
+/// of the points within `hops` hops of a seed: the lists and radii [`KnnIndex::knn_near`] gives
+/// them, bit for bit, and which points are listed (empty when all are, or when fewer than
+/// [`KEEP_ALL_BELOW`] of them would be dropped: then every list is kept). Where the seeds are many, one
 /// grid pass over every point and a walk over the graph cost less than a pass per hop, and every
 /// later pass of the operator skips the points no seed depends on (docs/DECISIONS.md, "A tile
 /// computes only what its owned results depend on").
