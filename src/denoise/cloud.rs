@@ -860,22 +860,27 @@ mod tests {
         pts
     }
 
-    #[test]
-    fn issue9_globals_from_the_k_lists_equal_the_separate_pre_pass() {
-        let pts = issue9_cloud();
-        let ties: Vec<u64> = (0..pts.len() as u64).map(|i| 3 * i + 1).collect();
-        let origin = crate::denoise::origin_of(&pts);
-        let run = CloudRun {
-            positions: &pts,
-            ties: &ties,
+    /// The whole cloud `pts` as one run, lists capped at its isolation radius for k = 16.
+    fn whole_run<'a>(pts: &'a [DVec3], ties: &'a [u64]) -> CloudRun<'a> {
+        let origin = crate::denoise::origin_of(pts);
+        CloudRun {
+            positions: pts,
+            ties,
             origin,
             region: None,
-            isolation: crate::denoise::isolation::of_cloud(&pts, &ties, origin, 16),
+            isolation: crate::denoise::isolation::of_cloud(pts, ties, origin, 16),
             short_lists: false,
             complete: None,
             wanted: None,
             held: None,
-        };
+        }
+    }
+
+    #[test]
+    fn issue9_globals_from_the_k_lists_equal_the_separate_pre_pass() {
+        let pts = issue9_cloud();
+        let ties: Vec<u64> = (0..pts.len() as u64).map(|i| 3 * i + 1).collect();
+        let run = whole_run(&pts, &ties);
         let guarded = Params::default();
         let bilateral = Params {
             method: Method::Bilateral,
@@ -904,18 +909,7 @@ mod tests {
     fn issue16_the_noise_of_a_large_cloud_is_the_median_over_its_sample_whichever_pass_lists_it() {
         let pts = issue9_cloud();
         let ties: Vec<u64> = (0..pts.len() as u64).collect();
-        let origin = crate::denoise::origin_of(&pts);
-        let run = CloudRun {
-            positions: &pts,
-            ties: &ties,
-            origin,
-            region: None,
-            isolation: crate::denoise::isolation::of_cloud(&pts, &ties, origin, 16),
-            short_lists: false,
-            complete: None,
-            wanted: None,
-            held: None,
-        };
+        let run = whole_run(&pts, &ties);
         let params = Params::default();
         // As if the cloud had 4 × NOISE_SAMPLE points: one in four is sampled.
         let n = 4 * NOISE_SAMPLE;

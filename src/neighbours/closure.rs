@@ -198,6 +198,24 @@ mod tests {
         pts
     }
 
+    /// A listed point has its all-points list and radius, bit for bit; any other only itself and
+    /// radius 0.
+    fn assert_kept(
+        (nb, radii, listed): &(Neighbourhoods, Vec<f64>, Vec<bool>),
+        (all, all_r): (&Neighbourhoods, &[f64]),
+        case: &str,
+    ) {
+        for (i, &l) in listed.iter().enumerate() {
+            if l {
+                assert_eq!(nb.get(i), all.get(i), "{case}, point {i}");
+                assert_eq!(radii[i].to_bits(), all_r[i].to_bits(), "{case}, point {i}");
+            } else {
+                assert_eq!(nb.get(i), &[i as u32], "{case}, point {i}");
+                assert_eq!(radii[i], 0.0, "{case}, point {i}");
+            }
+        }
+    }
+
     /// The points within `hops` hops of a seed in the graph `all`.
     fn within_hops(all: &Neighbourhoods, seeds: &[bool], hops: usize) -> Vec<bool> {
         let mut want = seeds.to_vec();
@@ -228,15 +246,11 @@ mod tests {
             let want = within_hops(&all, &seeds, hops);
             assert_eq!(listed, want, "hops {hops}");
             assert!(listed.iter().filter(|&&l| l).count() < 400, "hops {hops}");
-            for i in 0..pts.len() {
-                if listed[i] {
-                    assert_eq!(nb.get(i), all.get(i), "point {i}, hops {hops}");
-                    assert_eq!(radii[i].to_bits(), all_r[i].to_bits());
-                } else {
-                    assert_eq!(nb.get(i), &[i as u32]);
-                    assert_eq!(radii[i], 0.0);
-                }
-            }
+            assert_kept(
+                &(nb, radii, listed),
+                (&all, &all_r),
+                &format!("hops {hops}"),
+            );
         }
     }
 
@@ -309,15 +323,8 @@ mod tests {
                             .all(|(a, b)| a.to_bits() == b.to_bits())
                     );
                 }
-                for i in 0..pts.len() {
-                    if listed[i] {
-                        assert_eq!(nb.get(i), all.get(i), "seeds {s}, hops {hops}, point {i}");
-                        assert_eq!(radii[i].to_bits(), all_r[i].to_bits());
-                    } else {
-                        assert_eq!(nb.get(i), &[i as u32]);
-                        assert_eq!(radii[i], 0.0);
-                    }
-                }
+                let kept = (nb, radii, listed);
+                assert_kept(&kept, (&all, &all_r), &format!("seeds {s}, hops {hops}"));
             }
         }
     }
