@@ -17,6 +17,7 @@ const NOISE: SinkOptions = SinkOptions {
     noise_flag: true,
     normals: false,
     temp_dir: None,
+    body: false,
 };
 
 // ---------------------------------------------------------------------------------------------

@@ -8,6 +8,7 @@ mod util;
 mod cli;
 mod docker;
 mod golden;
+mod io_bodies;
 mod io_copc;
 mod io_e57;
 mod io_flags;

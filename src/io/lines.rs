@@ -256,6 +256,24 @@ impl LineSink {
         Ok(())
     }
 
+    /// Appends the lines of a body ([`LineSink::finish_body`]) at `path`; `lines` tells whether it
+    /// holds any (whose last terminator then follows with the next write or at `finish`).
+    pub(crate) fn append_lines(&mut self, path: &Path, lines: bool) -> Result<(), IoError> {
+        if !lines {
+            return Ok(());
+        }
+        self.put(&[])?;
+        self.file.append_file(path)?;
+        self.pending = true;
+        Ok(())
+    }
+
+    /// Moves the file into place, its last line unterminated (a body: the terminator is the
+    /// writer's it is appended to), without a sync.
+    pub(crate) fn finish_body(self) -> Result<(), IoError> {
+        self.file.commit_unsynced()
+    }
+
     /// Terminates the last line unless `unterminated`, then moves the file into place.
     pub(crate) fn finish(mut self, unterminated: bool) -> Result<(), IoError> {
         if self.pending && !unterminated {

@@ -531,7 +531,39 @@ pub trait Source: Send {
     fn finish(self: Box<Self>) -> Result<Extras, IoError>;
 }
 
+/// What a sink's header needs of the points of a body written apart ([`SinkOptions::body`]):
+/// their count, and for LAS the points per return and the stored bounds.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct BodyStats {
+    /// Points in the body.
+    pub points: u64,
+    /// LAS: points per return number 1–15 (zeros for other formats).
+    pub by_return: [u64; 15],
+    /// LAS: the smallest and largest stored (scaled integer) x, y, z; `None` for other formats
+    /// and for a body without points.
+    pub bounds: Option<([i32; 3], [i32; 3])>,
+}
+
+impl BodyStats {
+    /// The stats of a body of `points` points in a format whose header needs only the count.
+    pub fn count(points: u64) -> BodyStats {
+        BodyStats {
+            points,
+            ..BodyStats::default()
+        }
+    }
+}
+
 /// A writer that streams points in batches into a temporary file and renames it at the end.
+///
+/// # Bodies
+/// A sink created with [`SinkOptions::body`] writes the records alone (no header, no trailer, no
+/// check of the announced count) and ends with [`Sink::finish_body`]; the sink of the whole
+/// output, created with the same layout, takes such bodies in order with [`Sink::append_body`]
+/// instead of their points, and writes byte for byte what it would have written from the points
+/// (the stitch of a tiled run writes its output in ranges this way). Only the sinks whose
+/// [`Sink::splittable`] is true can: fixed or line records without compression (PLY, PCD
+/// `ascii`/`binary`, XYZ/PTS, raw `.bin`, LAS with a known scale and offset).
 pub trait Sink {
     /// Writes the points of `batch`, positions from `batch.positions`.
     ///
@@ -544,6 +576,39 @@ pub trait Sink {
     /// # Errors
     /// Write failures; fewer points than announced.
     fn finish(self: Box<Self>, extras: &Extras) -> Result<(), IoError>;
+
+    /// True when this sink writes its points the same way in bodies ([`Sink::append_body`]).
+    fn splittable(&self) -> bool {
+        false
+    }
+
+    /// Ends a body sink ([`SinkOptions::body`]): flushes and moves its file into place (without a
+    /// sync: bodies are scratch) and returns what the whole output's header needs of its points.
+    ///
+    /// # Errors
+    /// Write failures; [`IoError::Unsupported`] for a sink that is not [`Sink::splittable`].
+    fn finish_body(self: Box<Self>) -> Result<BodyStats, IoError> {
+        Err(not_splittable(Path::new("")))
+    }
+
+    /// Appends the body at `path`, written by a body sink of this sink's layout, whose
+    /// [`Sink::finish_body`] gave `stats`, as if its points had been written here.
+    ///
+    /// # Errors
+    /// Read and write failures; more points than announced; [`IoError::Unsupported`] for a sink
+    /// that is not [`Sink::splittable`].
+    fn append_body(&mut self, path: &Path, stats: &BodyStats) -> Result<(), IoError> {
+        let _ = stats;
+        Err(not_splittable(path))
+    }
+}
+
+/// The error of a body asked of a sink that cannot write bodies.
+fn not_splittable(path: &Path) -> IoError {
+    IoError::Unsupported {
+        path: path.to_path_buf(),
+        detail: "this output cannot be written in separate bodies".into(),
+    }
 }
 
 /// Opens `path` for streaming; the format comes from `format` or else from the extension.
@@ -631,6 +696,8 @@ pub struct SinkOptions {
     /// Where a sink that must seek (LAS/LAZ) spools its output when the target is a stream
     /// (standard output, a FIFO); the system temporary directory when `None`.
     pub temp_dir: Option<PathBuf>,
+    /// Write a body: the records alone, for [`Sink::append_body`] (see [`Sink`]'s bodies).
+    pub body: bool,
 }
 
 /// Creates a sink at `path` that writes `count` points laid out like `like`. The format comes from
@@ -697,6 +764,8 @@ pub fn create_in(
     options: &SinkOptions,
 ) -> Result<Box<dyn Sink>, IoError> {
     refuse_options(out.target(), format, options)?;
+    // A body announces nothing: the sink it is appended to counts its points.
+    let count = if options.body { u64::MAX } else { count };
     Ok(match format {
         Format::Ply => Box::new(ply::PlySink::new(out, like, count, options)?),
         Format::Obj => Box::new(obj::ObjSink::new(out, like, count)?),

@@ -252,6 +252,23 @@ impl AtomicFile {
         }
     }
 
+    /// Appends the bytes of the file `src`; returns how many. Between files the kernel copies
+    /// (`copy_file_range` under Linux), without a pass through user space.
+    ///
+    /// # Errors
+    /// `src` cannot be read; write failures.
+    pub fn append_file(&mut self, src: &Path) -> Result<u64, IoError> {
+        let mut from = File::open(src).map_err(|e| IoError::io(src, e))?;
+        let copied = match &mut self.dest {
+            Dest::Rename { tmp, .. } | Dest::Spool { tmp, .. } => tmp
+                .flush()
+                .and_then(|()| std::io::copy(&mut from, tmp.get_mut().as_file_mut())),
+            Dest::Direct(out) => std::io::copy(&mut from, out),
+            Dest::Memory { buf, .. } => std::io::copy(&mut from, buf),
+        };
+        copied.map_err(|e| self.err(e))
+    }
+
     /// True when the output goes to a stream (standard output, a device, a FIFO).
     pub fn is_stream(&self) -> bool {
         matches!(self.dest, Dest::Direct(_) | Dest::Spool { .. })

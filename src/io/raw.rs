@@ -34,7 +34,9 @@ use std::path::Path;
 
 use super::reader::seek_record;
 use super::tally::{Tally, check_batch};
-use super::{AtomicFile, Extras, Format, Input, IoError, Meta, Sink, Source, SourceInfo};
+use super::{
+    AtomicFile, BodyStats, Extras, Format, Input, IoError, Meta, Sink, Source, SourceInfo,
+};
 use crate::points::{Endian, PointBatch, ScalarType, Schema};
 
 /// Bytes per KITTI record.
@@ -496,6 +498,22 @@ impl Sink for RawSink {
     fn finish(self: Box<Self>, _extras: &Extras) -> Result<(), IoError> {
         self.tally.check(self.out.target())?;
         self.out.commit()
+    }
+
+    fn splittable(&self) -> bool {
+        true
+    }
+
+    fn finish_body(self: Box<Self>) -> Result<BodyStats, IoError> {
+        let points = self.tally.written();
+        self.out.commit_unsynced()?;
+        Ok(BodyStats::count(points))
+    }
+
+    fn append_body(&mut self, path: &Path, stats: &BodyStats) -> Result<(), IoError> {
+        self.tally.add_body(self.out.target(), stats)?;
+        self.out.append_file(path)?;
+        Ok(())
     }
 }
 

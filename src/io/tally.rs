@@ -62,6 +62,16 @@ impl Tally {
         Ok(())
     }
 
+    /// Accounts for the points of an appended body ([`super::Sink::append_body`]).
+    pub(crate) fn add_body(
+        &mut self,
+        path: &Path,
+        stats: &super::BodyStats,
+    ) -> Result<(), IoError> {
+        let n = usize::try_from(stats.points).unwrap_or(usize::MAX);
+        self.add(path, n)
+    }
+
     /// Errors unless exactly the announced number of points was written.
     pub(crate) fn check(&self, path: &Path) -> Result<(), IoError> {
         if self.written != self.announced {

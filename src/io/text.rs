@@ -52,8 +52,8 @@ use super::lines::{
 };
 use super::tally::{Tally, check_batch};
 use super::{
-    AtomicFile, Extras, Format, Input, IoError, Meta, NOISE_FIELD, NormalField, NormalNames, Sink,
-    SinkOptions, Source, SourceInfo, Trailer,
+    AtomicFile, BodyStats, Extras, Format, Input, IoError, Meta, NOISE_FIELD, NormalField,
+    NormalNames, Sink, SinkOptions, Source, SourceInfo, Trailer,
 };
 use crate::points::{FLAG_NOISE, PointBatch, ScalarType, Schema};
 
@@ -682,26 +682,29 @@ impl TextSink {
             None => (Vec::new(), Vec::new()),
         };
         let mut out = LineSink::new(file, eol);
-        match meta {
-            Some(_) => out.raw(&header)?,
-            None if flavor == TextFlavor::Xyz && (!fields.is_empty() || !append.is_empty()) => {
-                let mut h = b"# x y z".to_vec();
-                for &f in &fields {
-                    h.push(b' ');
-                    h.extend_from_slice(schema.fields[f].name.as_bytes());
+        // A body holds the point lines alone.
+        if !options.body {
+            match meta {
+                Some(_) => out.raw(&header)?,
+                None if flavor == TextFlavor::Xyz && (!fields.is_empty() || !append.is_empty()) => {
+                    let mut h = b"# x y z".to_vec();
+                    for &f in &fields {
+                        h.push(b' ');
+                        h.extend_from_slice(schema.fields[f].name.as_bytes());
+                    }
+                    for name in &names {
+                        h.push(b' ');
+                        h.extend_from_slice(name.as_bytes());
+                    }
+                    out.line(&h)?;
                 }
-                for name in &names {
-                    h.push(b' ');
-                    h.extend_from_slice(name.as_bytes());
-                }
-                out.line(&h)?;
+                None => {}
             }
-            None => {}
+            if flavor == TextFlavor::Pts {
+                out.line(count.to_string().as_bytes())?;
+            }
+            out.raw(&after_count)?;
         }
-        if flavor == TextFlavor::Pts {
-            out.line(count.to_string().as_bytes())?;
-        }
-        out.raw(&after_count)?;
         Ok(TextSink {
             out,
             coords: coord_types(&schema),
@@ -756,6 +759,21 @@ impl Sink for TextSink {
             unterminated = t.unterminated;
         }
         self.out.finish(unterminated)
+    }
+
+    fn splittable(&self) -> bool {
+        true
+    }
+
+    fn finish_body(self: Box<Self>) -> Result<BodyStats, IoError> {
+        let points = self.tally.written();
+        self.out.finish_body()?;
+        Ok(BodyStats::count(points))
+    }
+
+    fn append_body(&mut self, path: &Path, stats: &BodyStats) -> Result<(), IoError> {
+        self.tally.add_body(self.out.path(), stats)?;
+        self.out.append_lines(path, stats.points > 0)
     }
 }
 

@@ -11,6 +11,7 @@ pub(crate) fn sink_options(job: &Job, opts: &RunOptions) -> SinkOptions {
         noise_flag: job.spec.outliers == OutlierMode::Classify,
         normals: job.spec.params.write_normals,
         temp_dir: opts.temp_dir.clone(),
+        body: false,
     }
 }
 

@@ -34,7 +34,9 @@ use glam::DVec3;
 use rayon::prelude::*;
 
 use super::TilingError;
-use super::workdir::{blocks_path, merge_path, part_dir, result_path, spill_path};
+use super::workdir::{
+    blocks_path, merge_path, part_dir, range_merge_path, result_path, spill_path,
+};
 use crate::io::AtomicFile;
 use crate::neighbours::MortonGrid;
 use crate::points::{Aabb, PointNormal};
@@ -583,12 +585,38 @@ pub fn for_each_result(
 ) -> Result<(), TilingError> {
     let record = result_record(normals);
     for t in 0..tiles {
-        let mut one = ResultMerge::from_paths(&[result_path(dir, t)], record)?;
+        let mut one = ResultMerge::from_paths(&[result_path(dir, t)], record, None)?;
         while let Some(r) = one.next_result()? {
             f(&r);
         }
     }
     Ok(())
+}
+
+/// The first of the `records` records of the result file `f` (sorted by index) whose index is
+/// at least `index`, by binary search (`records` when none is).
+fn first_at_least(
+    f: &mut File,
+    path: &Path,
+    record: usize,
+    records: u64,
+    index: u64,
+) -> Result<u64, TilingError> {
+    let (mut lo, mut hi) = (0u64, records);
+    let mut at = [0u8; 8];
+    // At most 64 halvings.
+    while lo < hi {
+        let mid = lo + (hi - lo) / 2;
+        f.seek(SeekFrom::Start(mid * record as u64))
+            .and_then(|_| f.read_exact(&mut at))
+            .map_err(|e| err(path, e))?;
+        if u64::from_le_bytes(at) < index {
+            lo = mid + 1;
+        } else {
+            hi = mid;
+        }
+    }
+    Ok(lo)
 }
 
 /// Merges the result files of all tiles into one stream in global-index order.
@@ -607,14 +635,44 @@ impl ResultMerge {
     /// # Errors
     /// A missing or truncated result file.
     pub fn open(dir: &Path, tiles: usize, normals: bool) -> Result<ResultMerge, TilingError> {
+        ResultMerge::open_in(dir, tiles, normals, None)
+    }
+
+    /// [`ResultMerge::open`] restricted to the results whose index is in `indices`, for stitch
+    /// range `range` (which names its intermediate merges): each result file is entered by a
+    /// binary search on its sorted indices.
+    ///
+    /// # Errors
+    /// As [`ResultMerge::open`].
+    pub fn open_range(
+        dir: &Path,
+        tiles: usize,
+        normals: bool,
+        range: u64,
+        indices: std::ops::Range<u64>,
+    ) -> Result<ResultMerge, TilingError> {
+        ResultMerge::open_in(dir, tiles, normals, Some((range, indices)))
+    }
+
+    fn open_in(
+        dir: &Path,
+        tiles: usize,
+        normals: bool,
+        range: Option<(u64, std::ops::Range<u64>)>,
+    ) -> Result<ResultMerge, TilingError> {
         let record = result_record(normals);
         let mut paths: Vec<PathBuf> = (0..tiles).map(|t| result_path(dir, t)).collect();
+        // Only the tiles' own files are cut to the range; the merges of a level are within it.
+        let mut indices = range.as_ref().map(|(_, i)| i.clone());
         let mut level = 0;
         while paths.len() > MAX_OPEN {
             let mut next = Vec::new();
             for (g, group) in paths.chunks(MAX_OPEN).enumerate() {
-                let path = merge_path(dir, level, g);
-                let mut m = ResultMerge::from_paths(group, record)?;
+                let path = match &range {
+                    Some((r, _)) => range_merge_path(dir, *r, level, g),
+                    None => merge_path(dir, level, g),
+                };
+                let mut m = ResultMerge::from_paths(group, record, indices.as_ref())?;
                 let mut w = BufWriter::new(File::create(&path).map_err(|e| err(&path, e))?);
                 while let Some(r) = m.next_result()? {
                     let (rec, n) = encode(&r);
@@ -624,15 +682,21 @@ impl ResultMerge {
                 next.push(path);
             }
             paths = next;
+            indices = None;
             level += 1;
         }
-        ResultMerge::from_paths(&paths, record)
+        ResultMerge::from_paths(&paths, record, indices.as_ref())
     }
 
-    fn from_paths(paths: &[PathBuf], record: usize) -> Result<ResultMerge, TilingError> {
+    /// The merge of the result files `paths`; with `indices`, of their results in that range.
+    fn from_paths(
+        paths: &[PathBuf],
+        record: usize,
+        indices: Option<&std::ops::Range<u64>>,
+    ) -> Result<ResultMerge, TilingError> {
         let mut cursors = Vec::with_capacity(paths.len());
         for path in paths {
-            let f = File::open(path).map_err(|e| err(path, e))?;
+            let mut f = File::open(path).map_err(|e| err(path, e))?;
             let len = f.metadata().map_err(|e| err(path, e))?.len();
             if len % record as u64 != 0 {
                 return Err(TilingError::Corrupt {
@@ -640,10 +704,20 @@ impl ResultMerge {
                     detail: format!("{len} bytes is not a whole number of {record}-byte records"),
                 });
             }
+            let records = len / record as u64;
+            let (first, end) = match indices {
+                Some(r) => (
+                    first_at_least(&mut f, path, record, records, r.start)?,
+                    first_at_least(&mut f, path, record, records, r.end)?,
+                ),
+                None => (0, records),
+            };
+            f.seek(SeekFrom::Start(first * record as u64))
+                .map_err(|e| err(path, e))?;
             cursors.push(Cursor {
                 path: path.clone(),
                 reader: BufReader::with_capacity(1 << 16, f),
-                left: len / record as u64,
+                left: end.saturating_sub(first),
                 record,
             });
         }

@@ -97,10 +97,26 @@ pub fn merge_path(dir: &Path, level: usize, g: usize) -> PathBuf {
     dir.join(format!("merge_{level}_{g:05}.res"))
 }
 
+/// An intermediate merge of the results of stitch range `range` ([`merge_path`] for one range).
+pub fn range_merge_path(dir: &Path, range: u64, level: usize, g: usize) -> PathBuf {
+    dir.join(format!("merge_r{range:05}_{level}_{g:05}.res"))
+}
+
+/// The body of stitch range `range`: its output records alone ([`crate::io::SinkOptions::body`]).
+pub fn body_path(dir: &Path, range: u64) -> PathBuf {
+    dir.join(format!("body_{range:05}.bin"))
+}
+
+/// What the body of stitch range `range` holds (JSON), committed after the body.
+pub fn body_done_path(dir: &Path, range: u64) -> PathBuf {
+    dir.join(format!("body_{range:05}.json"))
+}
+
 /// True for the name of a file a run writes to its work directory (other than [`PID_FILE`]).
 fn is_run_file(name: &str) -> bool {
     name.starts_with("tile_")
         || name.starts_with("merge_")
+        || name.starts_with("body_")
         || name.starts_with("part_")
         || name.starts_with(".part_")
         || [PLAN_FILE, PARTITION_DONE, OCCUPANCY_FILE, GLOBALS_FILE].contains(&name)

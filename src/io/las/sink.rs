@@ -15,8 +15,8 @@ use super::layout::{
 use super::{LASZIP_RECORD, LASZIP_USER, LAZ_CHUNK_SIZE, LasMeta, LasVlr, Piece, laz_error};
 use crate::io::tally::{Tally, check_batch};
 use crate::io::{
-    AtomicFile, Extras, Format, IoError, Meta, NormalField, NormalNames, Sink, SinkOptions,
-    SourceInfo, Trailer,
+    AtomicFile, BodyStats, Extras, Format, IoError, Meta, NormalField, NormalNames, Sink,
+    SinkOptions, SourceInfo, Trailer,
 };
 use crate::points::{Endian, FLAG_NOISE, PointBatch, ScalarType, Schema, write_scalar};
 
@@ -302,7 +302,7 @@ impl LasSink {
         let minor = header[at::VERSION + 1];
         let format = header[at::FORMAT] & 0x3f;
         let record_len = usize::from(get_u16(&header, at::RECORD_LEN));
-        if minor < 4 && count > u64::from(u32::MAX) {
+        if minor < 4 && count > u64::from(u32::MAX) && !options.body {
             return Err(IoError::Unsupported {
                 path: path.to_path_buf(),
                 detail: format!("{count} points need LAS 1.4 (the source is LAS 1.{minor})"),
@@ -319,8 +319,11 @@ impl LasSink {
             _ => 0,
         };
 
-        file.write_all(&header).map_err(|e| file.err(e))?;
-        file.write_all(&vlr_block).map_err(|e| file.err(e))?;
+        // A body holds the point records alone.
+        if !options.body {
+            file.write_all(&header).map_err(|e| file.err(e))?;
+            file.write_all(&vlr_block).map_err(|e| file.err(e))?;
+        }
         let out = match laz {
             Some(vlr) => Out::Laz(Box::new(
                 LasZipCompressor::new(file, vlr).map_err(|e| laz_error(path, e))?,
@@ -803,6 +806,55 @@ impl Sink for LasSink {
         file.seek(SeekFrom::Start(0)).map_err(io)?;
         file.write_all(&h).map_err(io)?;
         file.commit()
+    }
+
+    /// Plain records, with the scale and offset known before the first point (a LAS source's):
+    /// a body's records are then those the whole file would hold. LAZ compresses in chunks
+    /// across bodies, and a frame chosen from the first points is not known to a later body.
+    fn splittable(&self) -> bool {
+        matches!(self.out, Out::Plain(_)) && self.frame.is_some()
+    }
+
+    fn finish_body(self: Box<Self>) -> Result<BodyStats, IoError> {
+        let this = *self;
+        if this.failed {
+            return Err(IoError::invalid(&this.target, "an earlier write failed"));
+        }
+        let points = this.tally.written();
+        let file = Self::into_file(this.out, &this.target)?;
+        file.commit_unsynced()?;
+        Ok(BodyStats {
+            points,
+            by_return: this.by_return,
+            bounds: (points > 0).then_some((this.min, this.max)),
+        })
+    }
+
+    fn append_body(&mut self, path: &Path, stats: &BodyStats) -> Result<(), IoError> {
+        let Out::Plain(file) = &mut self.out else {
+            return Err(IoError::Unsupported {
+                path: self.target.clone(),
+                detail: "LAZ output cannot be written in separate bodies".into(),
+            });
+        };
+        if self.failed {
+            return Err(IoError::invalid(&self.target, "an earlier write failed"));
+        }
+        self.tally.add_body(&self.target, stats)?;
+        if let Err(e) = file.append_file(path) {
+            self.failed = true;
+            return Err(e);
+        }
+        for (n, add) in self.by_return.iter_mut().zip(stats.by_return) {
+            *n += add;
+        }
+        if let Some((lo, hi)) = stats.bounds {
+            for a in 0..3 {
+                self.min[a] = self.min[a].min(lo[a]);
+                self.max[a] = self.max[a].max(hi[a]);
+            }
+        }
+        Ok(())
     }
 }
 

@@ -85,8 +85,8 @@ use super::lines::{LineEnding, show, tokens};
 use super::reader::seek_record;
 use super::tally::{Tally, check_batch};
 use super::{
-    AtomicFile, Extras, Format, Input, IoError, Meta, NormalField, NormalNames, Sink, SinkOptions,
-    Source, SourceInfo, Trailer, foreign_field_type,
+    AtomicFile, BodyStats, Extras, Format, Input, IoError, Meta, NormalField, NormalNames, Sink,
+    SinkOptions, Source, SourceInfo, Trailer, foreign_field_type,
 };
 use crate::points::{Endian, FLAG_NOISE, Field, PointBatch, ScalarType, Schema};
 
@@ -835,8 +835,11 @@ impl PcdSink {
             (Vec::new(), None)
         };
 
-        out.write_all(&header.render(count, kind, &append))
-            .map_err(|e| out.err(e))?;
+        // A body holds the point data alone.
+        if !options.body {
+            out.write_all(&header.render(count, kind, &append))
+                .map_err(|e| out.err(e))?;
+        }
         Ok(PcdSink {
             out,
             like: like.schema.clone(),
@@ -968,6 +971,38 @@ impl Sink for PcdSink {
             self.out.write_all(&t.tail).map_err(|e| self.out.err(e))?;
         }
         self.out.commit()
+    }
+
+    /// `binary_compressed` compresses every point in one block: it cannot take bodies.
+    fn splittable(&self) -> bool {
+        self.kind != PcdData::BinaryCompressed
+    }
+
+    fn finish_body(self: Box<Self>) -> Result<BodyStats, IoError> {
+        let points = self.tally.written();
+        self.out.commit_unsynced()?;
+        Ok(BodyStats::count(points))
+    }
+
+    fn append_body(&mut self, path: &Path, stats: &BodyStats) -> Result<(), IoError> {
+        if !self.splittable() {
+            return Err(IoError::Unsupported {
+                path: self.out.target().to_path_buf(),
+                detail: "binary_compressed PCD data cannot be written in separate bodies".into(),
+            });
+        }
+        self.tally.add_body(self.out.target(), stats)?;
+        if stats.points == 0 {
+            return Ok(());
+        }
+        // Ascii rows are separated, not terminated: a body's first row needs the separator.
+        if self.kind == PcdData::Ascii && self.pending_eol {
+            let eol = self.eol.bytes();
+            self.out.write_all(eol).map_err(|e| self.out.err(e))?;
+        }
+        self.out.append_file(path)?;
+        self.pending_eol = true;
+        Ok(())
     }
 }
 

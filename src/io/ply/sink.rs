@@ -8,8 +8,8 @@ use super::READ_BUF;
 use super::body::{self, PosCodec, faces_digest, format_ascii};
 use super::header::{self, PlyElement, PlyEncoding, PlyProperty, PlyType};
 use crate::io::{
-    AtomicFile, Extras, IoError, Meta, NOISE_FIELD, NormalField, NormalNames, Sink, SinkOptions,
-    SourceInfo, Trailer, foreign_field_type,
+    AtomicFile, BodyStats, Extras, IoError, Meta, NOISE_FIELD, NormalField, NormalNames, Sink,
+    SinkOptions, SourceInfo, Trailer, foreign_field_type,
 };
 use crate::points::{FLAG_NOISE, Faces, PointBatch, ScalarType, Schema, write_scalar};
 
@@ -322,9 +322,12 @@ impl PlySink {
             .position(|e| e.name == "face")
             .and_then(|i| post[i].face_list().map(|k| (i, k)));
 
-        out.write_all(&header_text)
-            .and_then(|_| out.write_all(&pre_vertex))
-            .map_err(|e| out.err(e))?;
+        // A body holds the vertex records alone; its count is the sink's it is appended to.
+        if !options.body {
+            out.write_all(&header_text)
+                .and_then(|_| out.write_all(&pre_vertex))
+                .map_err(|e| out.err(e))?;
+        }
         Ok(PlySink {
             out,
             encoding,
@@ -579,6 +582,25 @@ impl Sink for PlySink {
                 .map_err(|e| s.out.err(e))?;
         }
         s.out.commit()
+    }
+
+    fn splittable(&self) -> bool {
+        true
+    }
+
+    fn finish_body(self: Box<Self>) -> Result<BodyStats, IoError> {
+        let points = self.written;
+        self.out.commit_unsynced()?;
+        Ok(BodyStats::count(points))
+    }
+
+    fn append_body(&mut self, path: &Path, stats: &BodyStats) -> Result<(), IoError> {
+        if self.written + stats.points > self.count {
+            return Err(self.invalid(format!("more points than the {} announced", self.count)));
+        }
+        self.out.append_file(path)?;
+        self.written += stats.points;
+        Ok(())
     }
 }
 

@@ -1,20 +1,27 @@
 //! Phase 6, **stitch**: the result files merge in global-index order while the input streams a
 //! last time, so every attribute is copied from the input untouched; the output is assembled
-//! by the same rules as in memory ([`crate::pipeline::assemble`]).
+//! by the same rules as in memory ([`crate::pipeline::assemble`]). With a plan in parts, the
+//! parts' record ranges are stitched side by side into bodies that the output takes in order.
 
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::mpsc::{Receiver, SyncSender};
 
+use rayon::prelude::*;
+
 use super::outliers::Threshold;
-use crate::io::{self, BATCH, SourceInfo};
+use crate::io::{
+    self, AtomicFile, BATCH, BodyStats, Extras, Format, IoError, Sink, SinkOptions, Source,
+    SourceInfo,
+};
 use crate::pipeline::assemble::Assembler;
 use crate::pipeline::normals::NormalsAction;
-use crate::pipeline::stream::{sink_options, stream};
+use crate::pipeline::stream::{sink_options, stream, stream_range};
 use crate::pipeline::{Job, PipelineError, RunOptions};
 use crate::points::PointBatch;
 use crate::tiling::TilingError;
 use crate::tiling::plan::Plan;
 use crate::tiling::spill::{ResultMerge, TileResult};
-use crate::tiling::workdir::WorkDir;
+use crate::tiling::workdir::{WorkDir, body_path};
 
 /// What the stitch wrote.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -94,6 +101,11 @@ impl Merged {
 
 /// Writes `job`'s output from its input (described by `info`) and the results in `work`.
 ///
+/// With a plan in several parts and an output that can take bodies ([`Sink::splittable`]), the
+/// parts' record ranges are written side by side on the pool, each into a body of its own
+/// ([`write_body`]), which the output then takes in order ([`Sink::append_body`]); the bytes are
+/// those of one pass.
+///
 /// # Errors
 /// Read and write failures, cancellation.
 pub fn stitch(
@@ -105,8 +117,7 @@ pub fn stitch(
     threshold: &Threshold,
 ) -> Result<Stitched, PipelineError> {
     let tiling_err = |e| PipelineError::tiling(&job.input, e);
-    let normals = job.spec.params.write_normals;
-    let asm = Assembler::new(info, job.spec.outliers, threshold.value).writing_normals(normals);
+    let asm = assembler(job, info, threshold);
     let (dropped, removed) = if asm.keep_non_finite {
         (0, 0)
     } else {
@@ -121,13 +132,148 @@ pub fn stitch(
         count,
         &sink_options(job, opts),
     )?;
-    let merge = ResultMerge::open(work.path(), plan.tiles.len(), normals).map_err(tiling_err)?;
+    let (extras, found, written) = if plan.parts() > 1 && sink.splittable() {
+        let read = AtomicU64::new(0);
+        let bodies = (0..plan.parts())
+            .into_par_iter()
+            .map(|r| write_body(job, opts, info, plan, work, threshold, r, &read))
+            .collect::<Result<Vec<_>, _>>()?;
+        let (mut found, mut written) = (0, 0);
+        for (r, b) in (0u64..).zip(&bodies) {
+            opts.check_cancel()?;
+            let path = body_path(work.path(), r);
+            sink.append_body(&path, &b.stats)?;
+            let _ = std::fs::remove_file(&path);
+            found += b.found;
+            written += b.stats.points;
+        }
+        (trailer(job, plan)?, found, written)
+    } else {
+        let merge = ResultMerge::open(work.path(), plan.tiles.len(), job.spec.params.write_normals)
+            .map_err(tiling_err)?;
+        merge_into(job, info, &asm, merge, sink.as_mut(), |f| {
+            stream(job, opts, f)
+        })?
+    };
+    sink.finish(&extras)?;
+    Ok(Stitched {
+        written,
+        found,
+        dropped,
+        normals: asm.normals_action(),
+    })
+}
+
+/// The assembler of `job`'s output.
+fn assembler(job: &Job, info: &SourceInfo, threshold: &Threshold) -> Assembler {
+    Assembler::new(info, job.spec.outliers, threshold.value)
+        .writing_normals(job.spec.params.write_normals)
+}
+
+/// What a stitch range's body holds.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct Body {
+    /// Its points, and what the output's header needs of them.
+    pub stats: BodyStats,
+    /// Points of the range flagged or removed as outliers.
+    pub found: u64,
+}
+
+/// Writes the body of stitch range `r` (the records of [`Plan::part_range`]`(r)`, as the output
+/// of `job` holds them) to [`body_path`] in `work`, read counts added to `read` for progress.
+///
+/// # Errors
+/// Read and write failures, cancellation, an input that cannot seek to the range.
+#[allow(clippy::too_many_arguments)]
+pub fn write_body(
+    job: &Job,
+    opts: &RunOptions,
+    info: &SourceInfo,
+    plan: &Plan,
+    work: &WorkDir,
+    threshold: &Threshold,
+    r: u64,
+    read: &AtomicU64,
+) -> Result<Body, PipelineError> {
+    let asm = assembler(job, info, threshold);
+    let range = plan.part_range(r);
+    let merge = ResultMerge::open_range(
+        work.path(),
+        plan.tiles.len(),
+        job.spec.params.write_normals,
+        r,
+        range.clone(),
+    )
+    .map_err(|e| PipelineError::tiling(&job.input, e))?;
+    // The format the whole output's sink resolved (its extension, else the input's).
+    let format = job
+        .output_format
+        .or_else(|| Format::from_path(&job.output).ok())
+        .unwrap_or(info.format);
+    let options = SinkOptions {
+        body: true,
+        ..sink_options(job, opts)
+    };
+    let path = body_path(work.path(), r);
+    let mut sink = io::create_in(AtomicFile::create(&path)?, format, info, 0, &options)?;
+    let ((), found, _) = merge_into(job, info, &asm, merge, sink.as_mut(), |f| {
+        let seeked = stream_range(job, opts, range.clone(), |b| {
+            f(b)?;
+            let n = b.len() as u64;
+            opts.progress
+                .advance(read.fetch_add(n, Ordering::Relaxed) + n);
+            Ok(())
+        })?;
+        if seeked {
+            Ok(())
+        } else {
+            Err(PipelineError::from(IoError::invalid(
+                &job.input,
+                format!(
+                    "cannot seek to record {}, where stitch range {r} starts",
+                    range.start
+                ),
+            )))
+        }
+    })?;
+    let stats = sink.finish_body()?;
+    Ok(Body { stats, found })
+}
+
+/// What follows the input's points ([`Source::finish`] after its last record), for the output's
+/// trailer when the points were read in ranges.
+fn trailer(job: &Job, plan: &Plan) -> Result<Extras, PipelineError> {
+    let mut src: Box<dyn Source> = io::open(&job.input, job.input_format)?;
+    if !src.seek_point(plan.points)? {
+        return Err(PipelineError::from(IoError::invalid(
+            &job.input,
+            "cannot seek past its last record to read what follows the points",
+        )));
+    }
+    Ok(src.finish()?)
+}
+
+/// Feeds `sink` the points `feed` streams (it calls its argument on each input batch), each with
+/// its result from `merge` (on a thread of its own, a chunk ahead), assembled by `asm` (records
+/// of `info`). Returns
+/// what `feed` returned, the outliers found and the points written.
+fn merge_into<T>(
+    job: &Job,
+    info: &SourceInfo,
+    asm: &Assembler,
+    merge: ResultMerge,
+    sink: &mut dyn Sink,
+    feed: impl FnOnce(
+        &mut dyn FnMut(&PointBatch) -> Result<(), PipelineError>,
+    ) -> Result<T, PipelineError>,
+) -> Result<(T, u64, u64), PipelineError> {
+    let tiling_err = |e| PipelineError::tiling(&job.input, e);
     let mut out = PointBatch::with_capacity(info.schema.record_len, BATCH);
     let mut found = 0u64;
     let mut written = 0u64;
     // The merge runs on a thread of its own, a chunk ahead: it was half of the stitch, which is
     // serial in a scale-out job (docs/BENCHMARKS.md, issue 11).
-    let extras = std::thread::scope(|scope| {
+    let fed = std::thread::scope(|scope| {
         let (tx, rx) = std::sync::mpsc::sync_channel(AHEAD);
         scope.spawn(move || merge_ahead(merge, &tx));
         let mut results = Merged {
@@ -136,7 +282,7 @@ pub fn stitch(
             done: false,
         };
         let mut next: Option<TileResult> = results.next().map_err(tiling_err)?;
-        stream(job, opts, |b| {
+        feed(&mut |b: &PointBatch| {
             out.clear(written);
             for i in 0..b.len() {
                 let gi = b.start + i as u64;
@@ -155,11 +301,5 @@ pub fn stitch(
         })
         // `results` (the receiver) drops here, so a merge still sending stops.
     })?;
-    sink.finish(&extras)?;
-    Ok(Stitched {
-        written,
-        found,
-        dropped,
-        normals: asm.normals_action(),
-    })
+    Ok((fed, found, written))
 }
