@@ -114,7 +114,7 @@ fn issue11_tasks_in_any_number_and_order_write_the_denoise_bytes() {
         let tiles = tasks["tiles"].as_u64().unwrap();
         assert!(tiles >= 6, "{tasks}");
         assert_eq!(tasks["partition"], 3, "12 000 points in parts of 5000");
-        assert_eq!(tasks["stitch"], 1);
+        assert_eq!(tasks["stitch"], 3, "the stitch in the partition's ranges");
         assert_eq!(
             tasks["globals"], tiles,
             "the default operator needs the sensor noise"
@@ -133,17 +133,24 @@ fn issue11_tasks_in_any_number_and_order_write_the_denoise_bytes() {
         }
         // A duplicated task (an engine's retry of one that succeeded) changes nothing.
         worker(&work, "tiles", order[0], n);
-        worker(&work, "stitch", 0, 1);
-        worker(&work, "stitch", 0, 1);
+        // Stitch ranges in any order, one duplicated; the task that commits the last range
+        // assembles the output.
+        for i in shuffled(n, 3 * n + 2) {
+            worker(&work, "stitch", i, n);
+        }
+        worker(&work, "stitch", 0, n);
+        let st: serde_json::Value =
+            serde_json::from_str(&ok(&["status", "--work", s(&work), "--json"])).unwrap();
+        assert!(
+            st["next"].is_null(),
+            "the stitch tasks assembled the output: {st}"
+        );
         let out = d.path().join(format!("out{n}.ply"));
         ok(&["finish", "--work", s(&work), "-o", s(&out), "-q"]);
         assert!(
             std::fs::read(&out).unwrap() == want,
             "N = {n}: bytes differ"
         );
-        let st: serde_json::Value =
-            serde_json::from_str(&ok(&["status", "--work", s(&work), "--json"])).unwrap();
-        assert!(st["next"].is_null(), "{st}");
     }
 }
 
@@ -366,7 +373,14 @@ fn issue11_partition_and_stitch_killed_midway_rerun_to_the_same_bytes() {
     worker(&work, "globals", 0, 1);
     worker(&work, "tiles", 0, 1);
 
-    // Stitch: killed while its output is still a temporary file.
+    // Stitch: killed while a range's body is still a temporary file, then while the output
+    // assembled from the bodies is.
+    let killed = kill_midway(&work, "stitch", |names| {
+        names
+            .iter()
+            .any(|n| n.starts_with(".body_") && n.ends_with(".tmp"))
+    });
+    assert!(killed, "the stitch ended before a body could be killed");
     let killed = kill_midway(&work, "stitch", |names| {
         names
             .iter()

@@ -181,10 +181,14 @@ pub fn run_task(
     m.pull(|n| n == layout::JOB_FILE, &cancelled)?;
     let job = frozen(&m)?;
     let task = scaleout::resolve_index(index.0, index.1, job.tasks_of(phase), &env)?;
-    let tiles = job.plan.tiles.len();
+    // The task's own units: tiles, or stitch ranges.
+    let units = match phase {
+        Phase::Stitch => job.tasks_of(phase) as usize,
+        _ => job.plan.tiles.len(),
+    };
     let own: Vec<bool> = {
-        let mut v = vec![false; tiles];
-        for t in worker::assigned(task.index, task.of, tiles) {
+        let mut v = vec![false; units];
+        for t in worker::assigned(task.index, task.of, units) {
             v[t] = true;
         }
         v
@@ -198,6 +202,7 @@ pub fn run_task(
         Phase::Partition => {
             worker::assigned(task.index, task.of, job.plan.parts() as usize).count()
         }
+        Phase::Stitch => worker::assigned(task.index, task.of, units).count(),
         _ => usize::from(task.index == 0),
     } as u64;
     if committed && mine > 0 {

@@ -105,6 +105,15 @@ pub struct FrozenJob {
     pub bytes_per_point: u64,
     /// The plan.
     pub plan: Plan,
+    /// Stitch tasks: the plan's parts when the output can be written in ranges
+    /// ([`crate::pipeline::tiled::stitch::ranges`]), else 1 (as in jobs planned before ranges).
+    #[serde(default = "one")]
+    pub stitch_ranges: u64,
+}
+
+/// One stitch range.
+fn one() -> u64 {
+    1
 }
 
 impl FrozenJob {
@@ -198,7 +207,7 @@ impl FrozenJob {
         } else {
             0
         };
-        [self.plan.parts(), globals, tiles, 1]
+        [self.plan.parts(), globals, tiles, self.stitch_ranges.max(1)]
     }
 
     /// Tasks of `phase`.

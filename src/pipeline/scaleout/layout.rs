@@ -6,8 +6,11 @@
 //!  globals_<t>.json    tile t's partial sums of the global scalars (globals phase)
 //!  output.<ext>        the stitched output (stitch phase), then
 //!  stitch.json         its counts: the stitch is committed
+//!  body_<r>.bin        stitch range r's output records (a stitch in ranges), then
+//!  body_<r>.json       what they hold: the range is committed
 //!  partition_<p>.lock  held by the task writing partition part p (an empty file)
-//!  stitch.lock         held by the stitch (or finish) while it runs
+//!  stitch_<r>.lock     held by the task writing stitch range r
+//!  stitch.lock         held by the stitch (or finish) while it runs or assembles the bodies
 //! ```
 //!
 //! Every file is written to a temporary name beside it and renamed into place, so a reader sees
@@ -40,6 +43,11 @@ pub fn lock_path(dir: &Path, phase: super::Phase) -> PathBuf {
 /// The lock file of partition part `part`.
 pub fn part_lock_path(dir: &Path, part: u64) -> PathBuf {
     dir.join(format!("partition_{part:04}.lock"))
+}
+
+/// The lock file of stitch range `range`.
+pub fn range_lock_path(dir: &Path, range: u64) -> PathBuf {
+    dir.join(format!("stitch_{range:05}.lock"))
 }
 
 /// Writes `value` as JSON to `path` atomically; `sync` also syncs it to disk (the frozen job).

@@ -7,7 +7,7 @@ use std::fs::File;
 use std::path::Path;
 
 use super::Phase;
-use super::layout::{lock_path, part_lock_path};
+use super::layout::{lock_path, part_lock_path, range_lock_path};
 use crate::io::IoError;
 
 /// A held lock; released on drop.
@@ -34,6 +34,14 @@ impl PhaseLock {
     /// As [`PhaseLock::acquire`].
     pub fn acquire_part(dir: &Path, part: u64) -> Result<PhaseLock, IoError> {
         PhaseLock::at(&part_lock_path(dir, part))
+    }
+
+    /// Waits for and takes the lock of stitch range `range` in `dir`.
+    ///
+    /// # Errors
+    /// As [`PhaseLock::acquire`].
+    pub fn acquire_range(dir: &Path, range: u64) -> Result<PhaseLock, IoError> {
+        PhaseLock::at(&range_lock_path(dir, range))
     }
 
     fn at(path: &Path) -> Result<PhaseLock, IoError> {

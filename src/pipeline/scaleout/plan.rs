@@ -8,7 +8,7 @@ use super::ScaleoutError;
 use super::frozen::{FrozenJob, InputId, StoredFormat, VERSION};
 use super::url::WorkUrl;
 use crate::io::{self, Format};
-use crate::pipeline::tiled::{plan as plan_phase, scratch};
+use crate::pipeline::tiled::{plan as plan_phase, scratch, stitch};
 use crate::pipeline::{DenoiseSpec, Job, Progress, RunOptions, bytes_per_point};
 
 /// What to plan.
@@ -144,6 +144,7 @@ pub fn plan(
     let per_point = bytes_per_point(&req.spec.params, info.schema.record_len);
     let limits = plan_phase::Limits::new(&opts, per_point);
     let plan = plan_phase::plan(&job, &opts, &info, &limits)?;
+    let stitch_ranges = stitch::ranges(&job, &opts, &info, &plan, output_format.format())?;
     let frozen = FrozenJob {
         version: VERSION,
         input: stored,
@@ -155,6 +156,7 @@ pub fn plan(
         tile_points: req.tile_points,
         bytes_per_point: per_point,
         plan,
+        stitch_ranges,
     };
     frozen.save(dir)?;
     Ok(Planned {

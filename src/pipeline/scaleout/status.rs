@@ -8,7 +8,7 @@ use serde::Serialize;
 use super::frozen::FrozenJob;
 use super::layout::{globals_partial_path, load_json};
 use super::url::WorkUrl;
-use super::worker::committed_stitch;
+use super::worker::{committed_ranges, committed_stitch};
 use super::{Phase, ScaleoutError};
 use crate::tiling::workdir::{PART_DONE, WorkDir};
 
@@ -19,8 +19,8 @@ pub struct PhaseStatus {
     pub phase: Phase,
     /// Its task count (what an engine's array should have).
     pub tasks: u64,
-    /// Units of work (parts for the partition, tiles for globals and tiles, 1 for the stitch,
-    /// 0 when the phase is not needed).
+    /// Units of work (parts for the partition, tiles for globals and tiles; for the stitch 1,
+    /// or its ranges and the output assembled from them; 0 when the phase is not needed).
     pub units: u64,
     /// Units committed.
     pub committed: u64,
@@ -81,8 +81,13 @@ pub fn status(work: &WorkUrl) -> Result<Status, ScaleoutError> {
     let done_tiles = (0..tiles)
         .filter(|&t| w.committed_tile(t).is_some())
         .count() as u64;
-    let stitch = u64::from(committed_stitch(dir, &frozen).is_some());
-    let units = [parts, tasks[1], tiles as u64, 1];
+    let stitched = committed_stitch(dir, &frozen).is_some();
+    let (stitch_units, stitch) = match tasks[3] {
+        1 => (1, u64::from(stitched)),
+        ranges if stitched => (ranges + 1, ranges + 1),
+        ranges => (ranges + 1, committed_ranges(dir, ranges)),
+    };
+    let units = [parts, tasks[1], tiles as u64, stitch_units];
     let committed = [partition, globals, done_tiles, stitch];
     let phases: Vec<PhaseStatus> = Phase::ALL
         .iter()

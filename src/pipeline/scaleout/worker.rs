@@ -3,11 +3,12 @@
 //! committed, does its share — tile `t` belongs to task `t mod N` — skipping what is committed,
 //! and commits each result atomically.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64};
 use std::time::Instant;
 
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::frozen::FrozenJob;
@@ -24,7 +25,7 @@ use crate::pipeline::NormalsAction;
 use crate::pipeline::tiled::partition::{self, Partition};
 use crate::pipeline::tiled::{globals, outliers, stitch, tiles};
 use crate::pipeline::{Job, PipelineError, Progress, RunOptions};
-use crate::tiling::workdir::WorkDir;
+use crate::tiling::workdir::{WorkDir, body_done_path, body_path};
 
 /// What a task did.
 #[derive(Debug, Clone, Serialize)]
@@ -221,6 +222,51 @@ pub fn committed_stitch(dir: &Path, frozen: &FrozenJob) -> Option<StitchDone> {
     (len == done.bytes).then_some(done)
 }
 
+/// A committed stitch range (`body_<r>.json`, written after its body).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+struct BodyDone {
+    /// What the body holds.
+    body: stitch::Body,
+    /// Bytes of the body file.
+    bytes: u64,
+}
+
+/// Stitch range `r` of the job in `dir` when committed: its body file, and what it holds.
+fn committed_body(dir: &Path, r: u64) -> Option<(PathBuf, stitch::Body)> {
+    let done: BodyDone = load_json(&body_done_path(dir, r))?;
+    let path = body_path(dir, r);
+    let len = std::fs::metadata(&path).ok()?.len();
+    (len == done.bytes).then_some((path, done.body))
+}
+
+/// How many of the `ranges` stitch ranges of the job in `dir` are committed (by their markers,
+/// which outlive the bodies once the output holds them).
+pub fn committed_ranges(dir: &Path, ranges: u64) -> u64 {
+    (0..ranges)
+        .filter(|&r| load_json::<BodyDone>(&body_done_path(dir, r)).is_some())
+        .count() as u64
+}
+
+/// What the stitch of a job reads besides the results: the input's description and the
+/// outliers' threshold from every tile's sums.
+struct StitchInputs {
+    info: io::SourceInfo,
+    threshold: outliers::Threshold,
+}
+
+impl StitchInputs {
+    fn load(ctx: &Ctx, dir: &Path, job: &Job) -> Result<StitchInputs, ScaleoutError> {
+        ctx.frozen.check_input(dir)?;
+        let knn = ctx.knn_sums(Phase::Stitch)?;
+        let threshold = outliers::threshold(job, &ctx.frozen.plan, &ctx.work, &knn)?;
+        let info = io::open(&job.input, job.input_format)
+            .map_err(PipelineError::from)?
+            .info()
+            .clone();
+        Ok(StitchInputs { info, threshold })
+    }
+}
+
 /// Stitches the job of `dir` into `job.output` (its format `job.output_format`): the threshold
 /// from every tile's sums, then [`stitch::stitch`]. The caller holds the stitch lock.
 pub(super) fn stitch_into(
@@ -229,17 +275,115 @@ pub(super) fn stitch_into(
     hooks: &Hooks,
 ) -> Result<stitch::Stitched, ScaleoutError> {
     let ctx = Ctx::new(dir, hooks)?;
-    ctx.frozen.check_input(dir)?;
-    let knn = ctx.knn_sums(Phase::Stitch)?;
-    let plan = &ctx.frozen.plan;
-    let threshold = outliers::threshold(job, plan, &ctx.work, &knn)?;
-    let info = io::open(&job.input, job.input_format)
-        .map_err(PipelineError::from)?
-        .info()
-        .clone();
+    let s = StitchInputs::load(&ctx, dir, job)?;
     Ok(stitch::stitch(
-        job, &ctx.opts, &info, plan, &ctx.work, &threshold,
+        job,
+        &ctx.opts,
+        &s.info,
+        &ctx.frozen.plan,
+        &ctx.work,
+        &s.threshold,
     )?)
+}
+
+/// Commits the stitch of `dir` (`stitch.json` after the output, whose length it records).
+fn commit_stitch(dir: &Path, job: &Job, s: &stitch::Stitched) -> Result<(), ScaleoutError> {
+    let bytes = std::fs::metadata(&job.output)
+        .map_err(|e| io::IoError::io(&job.output, e))?
+        .len();
+    let done = StitchDone {
+        written: s.written,
+        found: s.found,
+        dropped: s.dropped,
+        normals: s.normals,
+        bytes,
+    };
+    commit_json(&dir.join(STITCH_DONE), &done, true)?;
+    Ok(())
+}
+
+/// Stitch ranges `mine` of the job of `ctx` (in `dir`), each a body committed on its own
+/// (skipping the committed ones); then, when every range is committed, the output from the
+/// bodies. Counts what it did in `r`.
+fn stitch_ranges(
+    ctx: &Ctx,
+    dir: &Path,
+    mine: &[u64],
+    r: &mut TaskReport,
+) -> Result<(), ScaleoutError> {
+    let plan = &ctx.frozen.plan;
+    r.assigned = mine.len() as u64;
+    let todo: Vec<u64> = mine
+        .iter()
+        .copied()
+        .filter(|&range| committed_body(dir, range).is_none())
+        .collect();
+    let mut inputs = None;
+    if !todo.is_empty() {
+        let s = StitchInputs::load(ctx, dir, &ctx.job)?;
+        let read = AtomicU64::new(0);
+        ctx.opts.progress.phase("stitch", plan.points);
+        // The task's ranges side by side on its pool, as `qemd denoise` does.
+        let did = todo
+            .par_iter()
+            .map(|&range| {
+                ctx.opts.check_cancel()?;
+                // A duplicate of this task waits here, then finds the range committed.
+                let _lock = PhaseLock::acquire_range(dir, range)?;
+                if committed_body(dir, range).is_some() {
+                    return Ok(0);
+                }
+                let path = body_path(dir, range);
+                let body = stitch::write_body(
+                    &ctx.job,
+                    &ctx.opts,
+                    &s.info,
+                    plan,
+                    &ctx.work,
+                    &s.threshold,
+                    range,
+                    &path,
+                    &read,
+                )?;
+                let bytes = std::fs::metadata(&path)
+                    .map_err(|e| io::IoError::io(&path, e))?
+                    .len();
+                commit_json(
+                    &body_done_path(dir, range),
+                    &BodyDone { body, bytes },
+                    false,
+                )?;
+                Ok(1)
+            })
+            .collect::<Result<Vec<u64>, ScaleoutError>>()?;
+        r.done = did.iter().sum();
+        inputs = Some(s);
+    }
+    r.skipped = r.assigned - r.done;
+    // The task that sees every range committed assembles the output; when none does (an
+    // object store lists once per task), `qemd finish` does.
+    let ranges = ctx.frozen.tasks_of(Phase::Stitch);
+    let Some(bodies) = (0..ranges)
+        .map(|range| committed_body(dir, range))
+        .collect::<Option<Vec<_>>>()
+    else {
+        return Ok(());
+    };
+    let _lock = PhaseLock::acquire(dir, Phase::Stitch)?;
+    if committed_stitch(dir, &ctx.frozen).is_some() {
+        return Ok(());
+    }
+    let s = match inputs {
+        Some(s) => s,
+        None => StitchInputs::load(ctx, dir, &ctx.job)?,
+    };
+    let stitched = stitch::assemble(&ctx.job, &ctx.opts, &s.info, plan, &s.threshold, &bodies)?;
+    commit_stitch(dir, &ctx.job, &stitched)?;
+    // The output holds the bodies now: their bytes go (their markers stay, for `status`).
+    for (path, _) in &bodies {
+        let _ = std::fs::remove_file(path);
+    }
+    Ok(())
 }
 
 /// Runs task `index` of `of` (else from the environment `env`, see [`super::index`]) of `phase`
@@ -357,6 +501,18 @@ pub fn run_task(
                 ctx.opts.progress.advance(r.assigned);
             }
         }
+        Phase::Stitch if ctx.frozen.tasks_of(phase) > 1 => {
+            let ranges = ctx.frozen.tasks_of(phase) as usize;
+            let mine: Vec<u64> = assigned(task.index, task.of, ranges)
+                .map(|x| x as u64)
+                .collect();
+            if committed_stitch(dir, &ctx.frozen).is_some() {
+                r.assigned = mine.len() as u64;
+                r.skipped = r.assigned;
+            } else {
+                stitch_ranges(&ctx, dir, &mine, &mut r)?;
+            }
+        }
         Phase::Stitch if single => {
             r.assigned = 1;
             let _lock = PhaseLock::acquire(dir, phase)?;
@@ -364,17 +520,7 @@ pub fn run_task(
                 r.skipped = 1;
             } else {
                 let s = stitch_into(dir, &ctx.job, hooks)?;
-                let bytes = std::fs::metadata(&ctx.job.output)
-                    .map_err(|e| io::IoError::io(&ctx.job.output, e))?
-                    .len();
-                let done = StitchDone {
-                    written: s.written,
-                    found: s.found,
-                    dropped: s.dropped,
-                    normals: s.normals,
-                    bytes,
-                };
-                commit_json(&dir.join(STITCH_DONE), &done, true)?;
+                commit_stitch(dir, &ctx.job, &s)?;
                 r.done = 1;
             }
         }

@@ -3,6 +3,7 @@
 //! by the same rules as in memory ([`crate::pipeline::assemble`]). With a plan in parts, the
 //! parts' record ranges are stitched side by side into bodies that the output takes in order.
 
+use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::mpsc::{Receiver, SyncSender};
 
@@ -103,8 +104,8 @@ impl Merged {
 ///
 /// With a plan in several parts and an output that can take bodies ([`Sink::splittable`]), the
 /// parts' record ranges are written side by side on the pool, each into a body of its own
-/// ([`write_body`]), which the output then takes in order ([`Sink::append_body`]); the bytes are
-/// those of one pass.
+/// ([`write_body`], in a scratch directory inside `work`), which the output then takes in order
+/// ([`assemble`]); the bytes are those of one pass.
 ///
 /// # Errors
 /// Read and write failures, cancellation.
@@ -116,52 +117,147 @@ pub fn stitch(
     work: &WorkDir,
     threshold: &Threshold,
 ) -> Result<Stitched, PipelineError> {
-    let tiling_err = |e| PipelineError::tiling(&job.input, e);
-    let asm = assembler(job, info, threshold);
-    let (dropped, removed) = if asm.keep_non_finite {
-        (0, 0)
-    } else {
-        (plan.points - plan.finite, threshold.removed)
-    };
-    let count = plan.points - dropped - removed;
     opts.progress.phase("stitch", plan.points);
-    let mut sink = io::create_with(
-        &job.output,
-        job.output_format,
-        info,
-        count,
-        &sink_options(job, opts),
-    )?;
-    let (extras, found, written) = if plan.parts() > 1 && sink.splittable() {
+    let mut out = Output::create(job, opts, info, plan, threshold)?;
+    if by_ranges(plan, out.sink.as_ref()) > 1 {
+        let scratch = tempfile::Builder::new()
+            .prefix(".stitch.")
+            .tempdir_in(work.path())
+            .map_err(|e| IoError::io(work.path(), e))?;
         let read = AtomicU64::new(0);
         let bodies = (0..plan.parts())
             .into_par_iter()
-            .map(|r| write_body(job, opts, info, plan, work, threshold, r, &read))
+            .map(|r| {
+                let path = body_path(scratch.path(), r);
+                write_body(job, opts, info, plan, work, threshold, r, &path, &read)
+                    .map(|b| (path, b))
+            })
             .collect::<Result<Vec<_>, _>>()?;
+        return out.append(job, opts, plan, &bodies);
+    }
+    let merge = ResultMerge::open(work.path(), plan.tiles.len(), job.spec.params.write_normals)
+        .map_err(|e| PipelineError::tiling(&job.input, e))?;
+    let (extras, found, written) =
+        merge_into(job, info, &out.asm, merge, out.sink.as_mut(), |f| {
+            stream(job, opts, f)
+        })?;
+    let stitched = out.stitched(found, written);
+    out.sink.finish(&extras)?;
+    Ok(stitched)
+}
+
+/// The stitch ranges of `plan` for a sink like `sink`: its parts when the output can take
+/// bodies, else one.
+fn by_ranges(plan: &Plan, sink: &dyn Sink) -> u64 {
+    if plan.parts() > 1 && sink.splittable() {
+        plan.parts()
+    } else {
+        1
+    }
+}
+
+/// The stitch ranges of `plan` for `job`'s output in `format` ([`stitch`]'s choice, made without
+/// writing anything): what a scale-out job plans as stitch tasks.
+///
+/// # Errors
+/// An output that cannot be created like the input (an option its format cannot carry).
+pub fn ranges(
+    job: &Job,
+    opts: &RunOptions,
+    info: &SourceInfo,
+    plan: &Plan,
+    format: Format,
+) -> Result<u64, PipelineError> {
+    if plan.parts() <= 1 {
+        return Ok(1);
+    }
+    let (probe, _) = AtomicFile::memory(&job.input);
+    Ok(
+        match io::create_in(probe, format, info, 0, &sink_options(job, opts)) {
+            Ok(sink) => by_ranges(plan, sink.as_ref()),
+            // E57 and COPC write a file of their own: one range.
+            Err(IoError::Unsupported { .. }) => 1,
+            Err(e) => return Err(e.into()),
+        },
+    )
+}
+
+/// The whole output's sink and what it is written with.
+struct Output {
+    sink: Box<dyn Sink>,
+    asm: Assembler,
+    dropped: u64,
+}
+
+impl Output {
+    fn create(
+        job: &Job,
+        opts: &RunOptions,
+        info: &SourceInfo,
+        plan: &Plan,
+        threshold: &Threshold,
+    ) -> Result<Output, PipelineError> {
+        let asm = assembler(job, info, threshold);
+        let (dropped, removed) = if asm.keep_non_finite {
+            (0, 0)
+        } else {
+            (plan.points - plan.finite, threshold.removed)
+        };
+        let sink = io::create_with(
+            &job.output,
+            job.output_format,
+            info,
+            plan.points - dropped - removed,
+            &sink_options(job, opts),
+        )?;
+        Ok(Output { sink, asm, dropped })
+    }
+
+    /// Appends `bodies` in order, then what follows the input's points, and finishes.
+    fn append(
+        mut self,
+        job: &Job,
+        opts: &RunOptions,
+        plan: &Plan,
+        bodies: &[(PathBuf, Body)],
+    ) -> Result<Stitched, PipelineError> {
         let (mut found, mut written) = (0, 0);
-        for (r, b) in (0u64..).zip(&bodies) {
+        for (path, b) in bodies {
             opts.check_cancel()?;
-            let path = body_path(work.path(), r);
-            sink.append_body(&path, &b.stats)?;
-            let _ = std::fs::remove_file(&path);
+            self.sink.append_body(path, &b.stats)?;
             found += b.found;
             written += b.stats.points;
         }
-        (trailer(job, plan)?, found, written)
-    } else {
-        let merge = ResultMerge::open(work.path(), plan.tiles.len(), job.spec.params.write_normals)
-            .map_err(tiling_err)?;
-        merge_into(job, info, &asm, merge, sink.as_mut(), |f| {
-            stream(job, opts, f)
-        })?
-    };
-    sink.finish(&extras)?;
-    Ok(Stitched {
-        written,
-        found,
-        dropped,
-        normals: asm.normals_action(),
-    })
+        let stitched = self.stitched(found, written);
+        self.sink.finish(&trailer(job, plan)?)?;
+        Ok(stitched)
+    }
+
+    fn stitched(&self, found: u64, written: u64) -> Stitched {
+        Stitched {
+            written,
+            found,
+            dropped: self.dropped,
+            normals: self.asm.normals_action(),
+        }
+    }
+}
+
+/// Writes `job`'s output from the `bodies` of its stitch ranges, in range order (written by
+/// [`write_body`], perhaps by other tasks).
+///
+/// # Errors
+/// Read and write failures, cancellation; an output that cannot take bodies.
+pub fn assemble(
+    job: &Job,
+    opts: &RunOptions,
+    info: &SourceInfo,
+    plan: &Plan,
+    threshold: &Threshold,
+    bodies: &[(PathBuf, Body)],
+) -> Result<Stitched, PipelineError> {
+    opts.progress.phase("stitch", plan.points);
+    Output::create(job, opts, info, plan, threshold)?.append(job, opts, plan, bodies)
 }
 
 /// The assembler of `job`'s output.
@@ -180,7 +276,8 @@ pub struct Body {
 }
 
 /// Writes the body of stitch range `r` (the records of [`Plan::part_range`]`(r)`, as the output
-/// of `job` holds them) to [`body_path`] in `work`, read counts added to `read` for progress.
+/// of `job` holds them, from the results in `work`) to `path`, atomically; read counts are
+/// added to `read` for progress.
 ///
 /// # Errors
 /// Read and write failures, cancellation, an input that cannot seek to the range.
@@ -193,6 +290,7 @@ pub fn write_body(
     work: &WorkDir,
     threshold: &Threshold,
     r: u64,
+    path: &Path,
     read: &AtomicU64,
 ) -> Result<Body, PipelineError> {
     let asm = assembler(job, info, threshold);
@@ -214,8 +312,7 @@ pub fn write_body(
         body: true,
         ..sink_options(job, opts)
     };
-    let path = body_path(work.path(), r);
-    let mut sink = io::create_in(AtomicFile::create(&path)?, format, info, 0, &options)?;
+    let mut sink = io::create_in(AtomicFile::create(path)?, format, info, 0, &options)?;
     let ((), found, _) = merge_into(job, info, &asm, merge, sink.as_mut(), |f| {
         let seeked = stream_range(job, opts, range.clone(), |b| {
             f(b)?;
