@@ -38,7 +38,7 @@ fn is_part_marker(name: &str) -> bool {
     in_part(name) == Some(crate::tiling::workdir::PART_DONE)
 }
 
-/// A part's occupancy grid (`part_<p>/occupancy.json`): read only to merge the partition's grid,
+/// A part's occupancy grid (`part_<p>/occupancy.bin`): read only to merge the partition's grid,
 /// so not downloaded once the partition is committed (31 grids of 6.7 MB each at 100 M points).
 pub fn is_part_grid(name: &str) -> bool {
     in_part(name) == Some(crate::tiling::workdir::OCCUPANCY_FILE)
@@ -314,11 +314,11 @@ mod tests {
         assert!(wanted(Phase::Partition, "input/a.las", &own));
         assert!(wanted(Phase::Partition, "part_0002/part.json", &own));
         assert!(!wanted(Phase::Partition, "part_0002/tile_00001.pts", &own));
-        assert!(!wanted(Phase::Partition, "part_0002/occupancy.json", &own));
+        assert!(!wanted(Phase::Partition, "part_0002/occupancy.bin", &own));
         for n in [
             "part_0000/tile_00001.pts",
             "part_0011/tile_00001.blk",
-            "part_0002/occupancy.json",
+            "part_0002/occupancy.bin",
             "part_0002/part.json",
         ] {
             assert!(wanted(Phase::Globals, n, &own), "{n}");
@@ -326,8 +326,8 @@ mod tests {
             assert!(!wanted(Phase::Stitch, n, &own), "{n}");
         }
         assert!(!wanted(Phase::Tiles, "part_x/tile_00001.pts", &own));
-        assert!(is_part_grid("part_0002/occupancy.json"));
-        assert!(!is_part_grid("occupancy.json"));
+        assert!(is_part_grid("part_0002/occupancy.bin"));
+        assert!(!is_part_grid("occupancy.bin"));
         assert!(!is_part_grid("part_0002/part.json"));
         assert!(!wanted(Phase::Globals, "input/a.las", &own));
         assert!(wanted(Phase::Tiles, "tile_00003.res", &own));
@@ -351,7 +351,7 @@ mod tests {
             "tile_00002.pts",
             "output.las",
             "globals_00001.json",
-            "part_0001/occupancy.json",
+            "part_0001/occupancy.bin",
             "part_0001/tile_00002.pts",
         ] {
             assert!(!is_marker(d), "{d}");

@@ -33,7 +33,7 @@ const MAX_VISITS: i64 = 1331;
 /// Point counts per cell of a regular grid. A cell is `2^level` base cells along each axis, and a
 /// point's key is its base-cell key shifted right by `level`, so coarsening merges counts exactly
 /// and a point is always counted in the cell [`Occupancy::loaded`] puts it in.
-#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct Occupancy {
     /// Base cell edge length.
     base: f64,
@@ -42,7 +42,6 @@ pub struct Occupancy {
     /// Corner of cell (0, 0, 0).
     origin: DVec3,
     /// Points per non-empty cell.
-    #[serde(with = "cells")]
     counts: FxHashMap<[i64; 3], u64>,
 }
 
@@ -297,28 +296,95 @@ impl Occupancy {
 
 /// Serialises the cells as a sorted list (JSON keys must be strings, and sorted output is
 /// reproducible).
-mod cells {
-    use rustc_hash::FxHashMap;
-    use serde::{Deserialize, Deserializer, Serialize, Serializer};
+/// The first bytes of a grid file ([`Occupancy::to_bytes`]), with the format's version.
+const MAGIC: &[u8; 8] = b"QEMDOCC1";
+/// Bytes before the cells: magic, base, level, origin, cell count.
+const HEAD: usize = 8 + 8 + 4 + 24 + 8;
+/// Bytes per cell: key, count.
+const CELL: usize = 32;
 
-    pub fn serialize<S: Serializer>(m: &FxHashMap<[i64; 3], u64>, s: S) -> Result<S::Ok, S::Error> {
-        let mut v: Vec<([i64; 3], u64)> = m.iter().map(|(k, n)| (*k, *n)).collect();
-        v.sort_unstable();
-        v.serialize(s)
+impl Occupancy {
+    /// The grid as bytes: [`MAGIC`], the base cell edge, the level, the origin, the cell count,
+    /// then each cell's key (3 × i64) and count (u64) in key order, little-endian. A binary grid:
+    /// JSON grids were 6.7 MB a part at 100 M points, and parsing 31 of them was most of the
+    /// partition's last task (docs/BENCHMARKS.md, issue 11).
+    pub fn to_bytes(&self) -> Vec<u8> {
+        let mut cells: Vec<([i64; 3], u64)> = self.counts.iter().map(|(k, n)| (*k, *n)).collect();
+        cells.sort_unstable();
+        let mut b = Vec::with_capacity(HEAD + CELL * cells.len());
+        b.extend_from_slice(MAGIC);
+        b.extend_from_slice(&self.base.to_le_bytes());
+        b.extend_from_slice(&self.level.to_le_bytes());
+        for v in self.origin.to_array() {
+            b.extend_from_slice(&v.to_le_bytes());
+        }
+        b.extend_from_slice(&(cells.len() as u64).to_le_bytes());
+        for (k, n) in cells {
+            for v in k {
+                b.extend_from_slice(&v.to_le_bytes());
+            }
+            b.extend_from_slice(&n.to_le_bytes());
+        }
+        b
     }
 
-    pub fn deserialize<'de, D: Deserializer<'de>>(
-        d: D,
-    ) -> Result<FxHashMap<[i64; 3], u64>, D::Error> {
-        Ok(Vec::<([i64; 3], u64)>::deserialize(d)?
-            .into_iter()
-            .collect())
+    /// The grid of [`Occupancy::to_bytes`]; `None` for bytes of another format, truncated or
+    /// with a base cell that is not positive and finite.
+    pub fn from_bytes(b: &[u8]) -> Option<Occupancy> {
+        let f64_at = |at: usize| Some(f64::from_le_bytes(b.get(at..at + 8)?.try_into().ok()?));
+        let u64_at = |at: usize| Some(u64::from_le_bytes(b.get(at..at + 8)?.try_into().ok()?));
+        if b.get(..8)? != MAGIC {
+            return None;
+        }
+        let base = f64_at(8)?;
+        let level = u32::from_le_bytes(b.get(16..20)?.try_into().ok()?);
+        let origin = DVec3::new(f64_at(20)?, f64_at(28)?, f64_at(36)?);
+        let n = usize::try_from(u64_at(44)?).ok()?;
+        if !(base.is_finite() && base > 0.0) || b.len() != HEAD.checked_add(n.checked_mul(CELL)?)? {
+            return None;
+        }
+        let mut counts = FxHashMap::default();
+        counts.reserve(n);
+        for cell in b[HEAD..].chunks_exact(CELL) {
+            let at = |i: usize| {
+                u64::from_le_bytes(cell[8 * i..8 * i + 8].try_into().unwrap_or_default())
+            };
+            counts.insert([at(0) as i64, at(1) as i64, at(2) as i64], at(3));
+        }
+        Some(Occupancy {
+            base,
+            level,
+            origin,
+            counts,
+        })
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn issue11_a_grid_round_trips_through_its_bytes_and_other_bytes_are_refused() {
+        let mut g = Occupancy::new(0.5, DVec3::new(-3.0, 2.0, 1e6));
+        for i in 0..200 {
+            g.add(DVec3::new(
+                f64::from(i) * 0.37 - 3.0,
+                2.0 + f64::from(i % 7),
+                1e6 - f64::from(i),
+            ));
+        }
+        g.merge(&g.clone());
+        let b = g.to_bytes();
+        assert_eq!(Occupancy::from_bytes(&b), Some(g.clone()));
+        // The same grid gives the same bytes (cells in key order).
+        assert_eq!(Occupancy::from_bytes(&b).unwrap().to_bytes(), b);
+        assert_eq!(Occupancy::from_bytes(&b[..b.len() - 1]), None);
+        assert_eq!(Occupancy::from_bytes(b"{\"base\": 1.0}"), None);
+        let mut bad = b.clone();
+        bad[8..16].copy_from_slice(&f64::NAN.to_le_bytes());
+        assert_eq!(Occupancy::from_bytes(&bad), None);
+    }
 
     #[test]
     fn a_ball_in_empty_space_is_complete_and_one_over_unloaded_points_is_not() {
@@ -447,15 +513,5 @@ mod tests {
         let all = g.loaded((0..n).map(|i| DVec3::new(i as f64 * 1e-3 + 5e-4, -0.25, 0.0)));
         assert_eq!(all.0, g.counts);
         assert_eq!(g.counts.values().sum::<u64>(), n);
-    }
-
-    #[test]
-    fn round_trips_through_json() {
-        let mut g = Occupancy::new(0.5, DVec3::new(-1.0, 2.0, 3.0));
-        for i in 0..100 {
-            g.add(DVec3::new(i as f64 * 0.1, 2.0, 3.0 - i as f64 * 0.3));
-        }
-        let s = serde_json::to_string(&g).unwrap();
-        assert_eq!(serde_json::from_str::<Occupancy>(&s).unwrap(), g);
     }
 }

@@ -9,10 +9,10 @@
 //!  part_<p>/            what partition task p wrote (records [p·n/P, (p+1)·n/P) of the input):
 //!    tile_<t>.pts         spill file of tile t (pass 2, see super::spill)
 //!    tile_<t>.blk         its block table: the box of each block of owned records
-//!    occupancy.json       its occupancy grid (when the plan has an isolation radius)
+//!    occupancy.bin        its occupancy grid (when the plan has an isolation radius)
 //!    part.json            the part is committed: its bytes (written in .part_<p>.tmp/, which
 //!                         is renamed to part_<p>/ whole)
-//!  occupancy.json       the parts' occupancy grids merged (saved before the marker)
+//!  occupancy.bin        the parts' occupancy grids merged (saved before the marker)
 //!  spill.done           the partition is committed (holds the bytes spilled)
 //!  globals.json         the global scalars (the pre-pass), when the method needs them
 //!  tile_<t>.res         results of tile t (written atomically)
@@ -48,7 +48,7 @@ pub const PLAN_FILE: &str = "plan.json";
 /// The marker of a committed partition (holds the bytes spilled).
 pub const PARTITION_DONE: &str = "spill.done";
 /// The occupancy grid of the partition pass.
-pub const OCCUPANCY_FILE: &str = "occupancy.json";
+pub const OCCUPANCY_FILE: &str = "occupancy.bin";
 /// The global scalars of the pre-pass.
 pub const GLOBALS_FILE: &str = "globals.json";
 
@@ -117,6 +117,7 @@ fn is_run_file(name: &str) -> bool {
     name.starts_with("tile_")
         || name.starts_with("merge_")
         || name.starts_with("body_")
+        || name.starts_with(".stitch.")
         || name.starts_with("part_")
         || name.starts_with(".part_")
         || [PLAN_FILE, PARTITION_DONE, OCCUPANCY_FILE, GLOBALS_FILE].contains(&name)
@@ -219,7 +220,7 @@ impl WorkDir {
     ) -> Result<(), IoError> {
         let tmp = part_temp(self.path(), part);
         if let Some(o) = occupancy {
-            save_json(&tmp.join(OCCUPANCY_FILE), o)?;
+            save_grid(&tmp.join(OCCUPANCY_FILE), o)?;
         }
         save_json(&tmp.join(PART_DONE), &done)?;
         let to = self.part(part);
@@ -245,7 +246,7 @@ impl WorkDir {
         let mut merged: Option<Occupancy> = None;
         for part in 0..plan.parts() {
             if plan.isolation.is_some() {
-                let Some(o) = load_json::<Occupancy>(&self.part(part).join(OCCUPANCY_FILE)) else {
+                let Some(o) = load_grid(&self.part(part).join(OCCUPANCY_FILE)) else {
                     return Ok(None);
                 };
                 match &mut merged {
@@ -308,14 +309,14 @@ impl WorkDir {
     /// bytes spilled.
     fn commit_partition(&self, bytes: u64, occupancy: Option<&Occupancy>) -> Result<(), IoError> {
         if let Some(o) = occupancy {
-            save_json(&self.path().join(OCCUPANCY_FILE), o)?;
+            save_grid(&self.path().join(OCCUPANCY_FILE), o)?;
         }
         save_json(&self.path().join(PARTITION_DONE), &bytes)
     }
 
     /// The occupancy grid saved with the partition, if readable.
     pub fn occupancy(&self) -> Option<Occupancy> {
-        load_json(&self.path().join(OCCUPANCY_FILE))
+        load_grid(&self.path().join(OCCUPANCY_FILE))
     }
 
     /// The committed global scalars, if any.
@@ -356,6 +357,20 @@ fn save_json<T: serde::Serialize>(path: &Path, value: &T) -> Result<(), IoError>
     let text = serde_json::to_vec(value).map_err(|e| io_err(std::io::Error::other(e)))?;
     f.write_all(&text).map_err(io_err)?;
     f.commit_unsynced()
+}
+
+/// Writes an occupancy grid's bytes ([`Occupancy::to_bytes`]) to `path` atomically.
+fn save_grid(path: &Path, grid: &Occupancy) -> Result<(), IoError> {
+    use std::io::Write;
+    let mut f = AtomicFile::create(path)?;
+    f.write_all(&grid.to_bytes())
+        .map_err(|e| IoError::io(path, e))?;
+    f.commit_unsynced()
+}
+
+/// Reads a grid written by [`save_grid`]; `None` when missing or unreadable (then redone).
+fn load_grid(path: &Path) -> Option<Occupancy> {
+    Occupancy::from_bytes(&std::fs::read(path).ok()?)
 }
 
 /// Reads JSON written by [`save_json`]; `None` when missing or unreadable (then redone).

@@ -15,7 +15,8 @@
 //!                                                                   then spill.done
 //!  globals     tiles or 0     tile t's partial sums, t ≡ I mod N   globals_<t>.json
 //!  tiles       tiles          tile t, t ≡ I mod N                  tile_<t>.res, tile_<t>.json
-//!  stitch      1              the output, in the work dir (I = 0)  output.<ext>, stitch.json
+//!  stitch      ranges or 1    range r's body, r ≡ I mod N; the     body_<r>.bin, body_<r>.json,
+//!                             output once all are (one range: I=0) output.<ext>, stitch.json
 //!  finish      (a command)    stitch if needed, deliver to -o      the output file
 //! ```
 //!
@@ -28,8 +29,10 @@
 //! Progress is read from the committed files alone ([`status`]).
 //!
 //! The partition has one task per part ([`crate::tiling::plan::Plan::part_range`]: ranges of
-//! input records, for formats that can seek to a record; one part otherwise). The stitch is
-//! one task for now (writing the output in ranges is a later step).
+//! input records, for formats that can seek to a record; one part otherwise). The stitch has one
+//! task per part too when the output can take its points as bodies ([`crate::io::Sink`]'s
+//! bodies; [`FrozenJob::stitch_ranges`]), else one: each range's body is committed on its own,
+//! and the task that finds them all committed assembles the output (else `finish` does).
 
 pub mod finish;
 pub mod frozen;
