@@ -298,20 +298,27 @@ impl Occupancy {
 /// reproducible).
 /// The first bytes of a grid file ([`Occupancy::to_bytes`]), with the format's version.
 const MAGIC: &[u8; 8] = b"QEMDOCC1";
-/// Bytes before the cells: magic, base, level, origin, cell count.
-const HEAD: usize = 8 + 8 + 4 + 24 + 8;
-/// Bytes per cell: key, count.
-const CELL: usize = 32;
+/// Bytes before the cells: magic, base, level, origin, cell count, key and count widths.
+const HEAD: usize = 8 + 8 + 4 + 24 + 8 + 2;
 
 impl Occupancy {
     /// The grid as bytes: [`MAGIC`], the base cell edge, the level, the origin, the cell count,
-    /// then each cell's key (3 × i64) and count (u64) in key order, little-endian. A binary grid:
-    /// JSON grids were 6.7 MB a part at 100 M points, and parsing 31 of them was most of the
-    /// partition's last task (docs/BENCHMARKS.md, issue 11).
+    /// the widths of a key coordinate and of a count (4 bytes when every value fits, else 8),
+    /// then each cell's key (3 coordinates) and count in key order, little-endian: 16 bytes a
+    /// cell at most sizes. A binary grid: JSON grids took most of the partition's last task,
+    /// which merges one per part (docs/BENCHMARKS.md, issue 11).
     pub fn to_bytes(&self) -> Vec<u8> {
         let mut cells: Vec<([i64; 3], u64)> = self.counts.iter().map(|(k, n)| (*k, *n)).collect();
         cells.sort_unstable();
-        let mut b = Vec::with_capacity(HEAD + CELL * cells.len());
+        let narrow_keys = cells
+            .iter()
+            .all(|(k, _)| k.iter().all(|&v| i32::try_from(v).is_ok()));
+        let narrow_counts = cells.iter().all(|&(_, n)| u32::try_from(n).is_ok());
+        let (kw, cw) = (
+            if narrow_keys { 4 } else { 8 },
+            if narrow_counts { 4 } else { 8 },
+        );
+        let mut b = Vec::with_capacity(HEAD + (3 * kw + cw) * cells.len());
         b.extend_from_slice(MAGIC);
         b.extend_from_slice(&self.base.to_le_bytes());
         b.extend_from_slice(&self.level.to_le_bytes());
@@ -319,11 +326,12 @@ impl Occupancy {
             b.extend_from_slice(&v.to_le_bytes());
         }
         b.extend_from_slice(&(cells.len() as u64).to_le_bytes());
+        b.extend_from_slice(&[kw as u8, cw as u8]);
         for (k, n) in cells {
             for v in k {
-                b.extend_from_slice(&v.to_le_bytes());
+                b.extend_from_slice(&v.to_le_bytes()[..kw]);
             }
-            b.extend_from_slice(&n.to_le_bytes());
+            b.extend_from_slice(&n.to_le_bytes()[..cw]);
         }
         b
     }
@@ -332,24 +340,44 @@ impl Occupancy {
     /// with a base cell that is not positive and finite.
     pub fn from_bytes(b: &[u8]) -> Option<Occupancy> {
         let f64_at = |at: usize| Some(f64::from_le_bytes(b.get(at..at + 8)?.try_into().ok()?));
-        let u64_at = |at: usize| Some(u64::from_le_bytes(b.get(at..at + 8)?.try_into().ok()?));
         if b.get(..8)? != MAGIC {
             return None;
         }
         let base = f64_at(8)?;
         let level = u32::from_le_bytes(b.get(16..20)?.try_into().ok()?);
         let origin = DVec3::new(f64_at(20)?, f64_at(28)?, f64_at(36)?);
-        let n = usize::try_from(u64_at(44)?).ok()?;
-        if !(base.is_finite() && base > 0.0) || b.len() != HEAD.checked_add(n.checked_mul(CELL)?)? {
+        let n = usize::try_from(u64::from_le_bytes(b.get(44..52)?.try_into().ok()?)).ok()?;
+        let (kw, cw) = (usize::from(*b.get(52)?), usize::from(*b.get(53)?));
+        let cell = 3 * kw + cw;
+        let whole = b.len() == HEAD.checked_add(n.checked_mul(cell)?)?;
+        let widths = [4, 8].contains(&kw) && [4, 8].contains(&cw);
+        if !(base.is_finite() && base > 0.0 && widths && whole) {
             return None;
         }
+        // Fixed-size reads (the chunks are `cell` bytes, so every slice is whole).
+        let key = |c: &[u8], i: usize| -> i64 {
+            if kw == 4 {
+                i64::from(i32::from_le_bytes(
+                    c[4 * i..4 * i + 4].try_into().unwrap_or_default(),
+                ))
+            } else {
+                i64::from_le_bytes(c[8 * i..8 * i + 8].try_into().unwrap_or_default())
+            }
+        };
+        let count = |c: &[u8]| -> u64 {
+            let at = 3 * kw;
+            if cw == 4 {
+                u64::from(u32::from_le_bytes(
+                    c[at..at + 4].try_into().unwrap_or_default(),
+                ))
+            } else {
+                u64::from_le_bytes(c[at..at + 8].try_into().unwrap_or_default())
+            }
+        };
         let mut counts = FxHashMap::default();
         counts.reserve(n);
-        for cell in b[HEAD..].chunks_exact(CELL) {
-            let at = |i: usize| {
-                u64::from_le_bytes(cell[8 * i..8 * i + 8].try_into().unwrap_or_default())
-            };
-            counts.insert([at(0) as i64, at(1) as i64, at(2) as i64], at(3));
+        for c in b[HEAD..].chunks_exact(cell) {
+            counts.insert([key(c, 0), key(c, 1), key(c, 2)], count(c));
         }
         Some(Occupancy {
             base,
@@ -384,6 +412,14 @@ mod tests {
         let mut bad = b.clone();
         bad[8..16].copy_from_slice(&f64::NAN.to_le_bytes());
         assert_eq!(Occupancy::from_bytes(&bad), None);
+        // Keys beyond 32 bits and counts beyond 32 bits take 8 bytes each.
+        let mut wide = Occupancy::new(1e-3, DVec3::ZERO);
+        wide.add(DVec3::new(-3e9, 5.0, 1.0));
+        wide.counts.insert([1, 2, 3], u64::from(u32::MAX) + 7);
+        let w = wide.to_bytes();
+        assert_eq!(w[52..54], [8, 8]);
+        assert_eq!(Occupancy::from_bytes(&w), Some(wide));
+        assert_eq!(b[52..54], [4, 4]);
     }
 
     #[test]
