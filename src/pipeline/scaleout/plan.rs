@@ -138,7 +138,7 @@ pub fn plan(
         scratch::check_disk(
             &opts,
             n,
-            scratch::disk_per_point(req.spec.params.write_normals),
+            scratch::run_disk_per_point(req.spec.params.write_normals, info.schema.record_len),
         )?;
     }
     let per_point = bytes_per_point(&req.spec.params, info.schema.record_len);

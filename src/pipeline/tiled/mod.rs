@@ -43,7 +43,7 @@ pub(crate) fn run(
     let mut phases = Stats::default();
     let mut timer = Timer::start();
     // The disk the run needs, from the header's count, before the first pass.
-    let disk = scratch::disk_per_point(job.spec.params.write_normals);
+    let disk = scratch::run_disk_per_point(job.spec.params.write_normals, info.schema.record_len);
     if let Some(n) = info.len {
         scratch::check_disk(opts, n, disk)?;
     }

@@ -19,6 +19,13 @@ pub const fn disk_per_point(normals: bool) -> u64 {
     (SPILL_RECORD as u64 * 3).div_ceil(2) + result_record(normals) as u64
 }
 
+/// Disk bytes per point of a tiled run whose input records are `record_len` bytes:
+/// [`disk_per_point`], plus the stitch's bodies (written in ranges, the output's records stay in
+/// the work directory until the output takes them; counted at the input's record length).
+pub const fn run_disk_per_point(normals: bool, record_len: usize) -> u64 {
+    disk_per_point(normals) + record_len as u64
+}
+
 /// A size for messages, with a binary unit that shows its value ("512 B", "1.5 MiB").
 fn size(bytes: u64) -> String {
     ByteSize(bytes).display().iec().to_string()
