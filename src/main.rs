@@ -124,6 +124,7 @@ fn plan(a: PlanArgs) -> Result<()> {
         tile_points: a.run.tile_points,
         part_points: a.run.part_points,
         stored_as: None,
+        stitch_tasks: true,
     };
     let hooks = scaleout::Hooks {
         progress: progress_for(a.quiet),

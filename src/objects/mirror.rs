@@ -22,7 +22,6 @@ fn is_marker(name: &str) -> bool {
     use crate::tiling::workdir::{GLOBALS_FILE, PARTITION_DONE};
     [JOB_FILE, STITCH_DONE, PARTITION_DONE, GLOBALS_FILE].contains(&name)
         || (name.starts_with("tile_") && name.ends_with(".json"))
-        || body(name, ".json").is_some()
         || is_part_marker(name)
 }
 
@@ -76,9 +75,8 @@ pub fn is_base(name: &str) -> bool {
 ///   once it is), and every tile's partial sums;
 /// - tiles: the same, and the results and outcomes of the task's own tiles (`own`, to skip the
 ///   committed ones);
-/// - stitch: every result and outcome, and the input (not the spill files); the stitch
-///   ranges' markers, and the bodies of the task's own ranges (`own`; `qemd finish` takes
-///   them all and assembles the output).
+/// - stitch: every result and outcome, and the input (not the spill files). An object-store
+///   job's stitch is one task ([`super::plan`]), which writes its ranges side by side.
 pub fn wanted(phase: Phase, name: &str, own: &dyn Fn(usize) -> bool) -> bool {
     if is_base(name) {
         return true;
@@ -95,19 +93,8 @@ pub fn wanted(phase: Phase, name: &str, own: &dyn Fn(usize) -> bool) -> bool {
         Phase::Tiles => {
             part || partial || tile(".res").is_some_and(own) || tile(".json").is_some_and(own)
         }
-        Phase::Stitch => {
-            input
-                || tile(".res").is_some()
-                || tile(".json").is_some()
-                || body(name, ".json").is_some()
-                || body(name, ".bin").is_some_and(own)
-        }
+        Phase::Stitch => input || tile(".res").is_some() || tile(".json").is_some(),
     }
-}
-
-/// The stitch range of a body's file (`body_<r>.bin`) or marker (`body_<r>.json`).
-fn body(name: &str, ext: &str) -> Option<usize> {
-    name.strip_prefix("body_")?.strip_suffix(ext)?.parse().ok()
 }
 
 /// A scratch directory mirroring part of a [`Store`] (removed on drop).

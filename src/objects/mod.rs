@@ -139,8 +139,11 @@ pub fn plan(work: &WorkUrl, req: &PlanRequest, hooks: &Hooks) -> Result<Planned,
         .unwrap_or_else(|| "input".into());
     let stored = format!("{INPUT_DIR}/{name}");
     m.pull(|n| n == layout::JOB_FILE, &cancelled)?;
+    // One stitch task: a range task would download every whole result file (the mirror
+    // fetches objects, not byte ranges); the one task still writes the ranges side by side.
     let req = PlanRequest {
         stored_as: Some(PathBuf::from(&stored)),
+        stitch_tasks: false,
         ..req.clone()
     };
     let planned = scaleout::plan(
@@ -181,14 +184,10 @@ pub fn run_task(
     m.pull(|n| n == layout::JOB_FILE, &cancelled)?;
     let job = frozen(&m)?;
     let task = scaleout::resolve_index(index.0, index.1, job.tasks_of(phase), &env)?;
-    // The task's own units: tiles, or stitch ranges.
-    let units = match phase {
-        Phase::Stitch => job.tasks_of(phase) as usize,
-        _ => job.plan.tiles.len(),
-    };
+    let tiles = job.plan.tiles.len();
     let own: Vec<bool> = {
-        let mut v = vec![false; units];
-        for t in worker::assigned(task.index, task.of, units) {
+        let mut v = vec![false; tiles];
+        for t in worker::assigned(task.index, task.of, tiles) {
             v[t] = true;
         }
         v
@@ -202,7 +201,9 @@ pub fn run_task(
         Phase::Partition => {
             worker::assigned(task.index, task.of, job.plan.parts() as usize).count()
         }
-        Phase::Stitch => worker::assigned(task.index, task.of, units).count(),
+        Phase::Stitch => {
+            worker::assigned(task.index, task.of, job.tasks_of(phase) as usize).count()
+        }
         _ => usize::from(task.index == 0),
     } as u64;
     if committed && mine > 0 {

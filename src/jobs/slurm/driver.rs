@@ -348,6 +348,7 @@ impl Jobs {
             tile_points: row.spec.tile_points,
             part_points: None,
             stored_as: None,
+            stitch_tasks: true,
         };
         let work = ctx.work_url();
         let hooks = Hooks {

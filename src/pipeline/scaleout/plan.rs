@@ -32,6 +32,10 @@ pub struct PlanRequest {
     /// directory, for a job that carries a copy of its input (an object-store job uploads it
     /// there). `None`: tasks read `input`, which every task must be able to reach.
     pub stored_as: Option<PathBuf>,
+    /// Stitch ranges as tasks of their own (a shared file system); `false`: one stitch task
+    /// that writes the ranges side by side (an object store, where each range task would
+    /// download every result file whole).
+    pub stitch_tasks: bool,
 }
 
 /// The result of planning.
@@ -144,7 +148,11 @@ pub fn plan(
     let per_point = bytes_per_point(&req.spec.params, info.schema.record_len);
     let limits = plan_phase::Limits::new(&opts, per_point);
     let plan = plan_phase::plan(&job, &opts, &info, &limits)?;
-    let stitch_ranges = stitch::ranges(&job, &opts, &info, &plan, output_format.format())?;
+    let stitch_ranges = if req.stitch_tasks {
+        stitch::ranges(&job, &opts, &info, &plan, output_format.format())?
+    } else {
+        1
+    };
     let frozen = FrozenJob {
         version: VERSION,
         input: stored,
