@@ -394,8 +394,15 @@ fn issue11_partition_and_stitch_killed_midway_rerun_to_the_same_bytes() {
         "a killed stitch is not committed: {st}"
     );
 
-    // The rerun commits, and finish gives the bytes of `qemd denoise`.
+    // The rerun commits, removes what the killed tasks left, and finish gives the bytes of
+    // `qemd denoise`.
     worker(&work, "stitch", 0, 1);
+    let left: Vec<String> = std::fs::read_dir(&work)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .filter(|n| n.ends_with(".tmp"))
+        .collect();
+    assert!(left.is_empty(), "temporary files left: {left:?}");
     let out = d.path().join("out.ply");
     ok(&["finish", "--work", s(&work), "-o", s(&out), "-q"]);
     assert!(std::fs::read(&out).unwrap() == want, "bytes differ");

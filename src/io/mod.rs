@@ -101,7 +101,9 @@ pub mod text;
 
 pub use input::{InputFile, is_stream_input};
 pub use lines::LineEnding;
-pub use output::{AtomicFile, MemoryOutput, OutputTarget, STDIO, is_stdio, is_stream_output};
+pub use output::{
+    AtomicFile, MemoryOutput, OutputTarget, STDIO, is_stdio, is_stream_output, remove_stale_temps,
+};
 pub use reader::Input;
 
 use std::fs::File;

@@ -347,6 +347,33 @@ fn temp_next_to(resolved: &Path, shown: &Path) -> Result<tempfile::NamedTempFile
         .map_err(|e| IoError::io(shown, e))
 }
 
+/// Removes the temporary files that writers of `target` ([`AtomicFile::create`]) left behind
+/// when they were killed; returns how many. Call it only where no writer of `target` can be
+/// running (under the lock that guards it): a live writer's file would go too.
+///
+/// # Errors
+/// The directory cannot be listed or a file removed.
+pub fn remove_stale_temps(target: &Path) -> Result<usize, IoError> {
+    let dir = match target.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d,
+        _ => Path::new("."),
+    };
+    let Some(name) = target.file_name().map(|n| n.to_string_lossy().into_owned()) else {
+        return Ok(0);
+    };
+    let prefix = format!(".{name}.");
+    let mut removed = 0;
+    for entry in std::fs::read_dir(dir).map_err(|e| IoError::io(dir, e))? {
+        let entry = entry.map_err(|e| IoError::io(dir, e))?;
+        let n = entry.file_name().to_string_lossy().into_owned();
+        if n.starts_with(&prefix) && n.ends_with(".tmp") && entry.path().is_file() {
+            std::fs::remove_file(entry.path()).map_err(|e| IoError::io(&entry.path(), e))?;
+            removed += 1;
+        }
+    }
+    Ok(removed)
+}
+
 /// Opens a stream target for writing (never creating, truncating or renaming anything).
 fn open_stream(t: &OutputTarget, shown: &Path) -> Result<Stream, IoError> {
     Ok(match t {
@@ -420,6 +447,27 @@ fn fix_permissions(_file: &File, _target: &Path) -> std::io::Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn issue11_stale_temps_of_a_target_go_and_nothing_else() {
+        let d = tempfile::tempdir().unwrap();
+        let target = d.path().join("body_00003.bin");
+        for n in [
+            ".body_00003.bin.a1B2.tmp",
+            ".body_00003.bin.zz.tmp",
+            ".body_00004.bin.q.tmp",
+        ] {
+            std::fs::write(d.path().join(n), b"x").unwrap();
+        }
+        std::fs::write(&target, b"committed").unwrap();
+        assert_eq!(remove_stale_temps(&target).unwrap(), 2);
+        let mut left: Vec<String> = std::fs::read_dir(d.path())
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        left.sort();
+        assert_eq!(left, [".body_00004.bin.q.tmp", "body_00003.bin"]);
+    }
 
     #[test]
     fn atomic_file_leaves_nothing_when_dropped() {

@@ -334,6 +334,8 @@ fn stitch_ranges(
                     return Ok(0);
                 }
                 let path = body_path(dir, range);
+                // A killed writer of this range left its temporary file; the lock says none runs.
+                io::remove_stale_temps(&path)?;
                 let body = stitch::write_body(
                     &ctx.job,
                     &ctx.opts,
@@ -373,6 +375,7 @@ fn stitch_ranges(
     if committed_stitch(dir, &ctx.frozen).is_some() {
         return Ok(());
     }
+    io::remove_stale_temps(&ctx.job.output)?;
     let s = match inputs {
         Some(s) => s,
         None => StitchInputs::load(ctx, dir, &ctx.job)?,
@@ -519,6 +522,7 @@ pub fn run_task(
             if committed_stitch(dir, &ctx.frozen).is_some() {
                 r.skipped = 1;
             } else {
+                io::remove_stale_temps(&ctx.job.output)?;
                 let s = stitch_into(dir, &ctx.job, hooks)?;
                 commit_stitch(dir, &ctx.job, &s)?;
                 r.done = 1;
