@@ -265,10 +265,22 @@ impl StitchInputs {
             .clone();
         Ok(StitchInputs { info, threshold })
     }
+
+    /// The stitch of `job` (the job of `ctx`, or another output of it) with these inputs.
+    fn stitch<'a>(&'a self, ctx: &'a Ctx, job: &'a Job) -> stitch::Stitch<'a> {
+        stitch::Stitch {
+            job,
+            opts: &ctx.opts,
+            info: &self.info,
+            plan: &ctx.frozen.plan,
+            work: &ctx.work,
+            threshold: &self.threshold,
+        }
+    }
 }
 
 /// Stitches the job of `dir` into `job.output` (its format `job.output_format`): the threshold
-/// from every tile's sums, then [`stitch::stitch`]. The caller holds the stitch lock.
+/// from every tile's sums, then [`stitch::Stitch::run`]. The caller holds the stitch lock.
 pub(super) fn stitch_into(
     dir: &Path,
     job: &Job,
@@ -276,14 +288,7 @@ pub(super) fn stitch_into(
 ) -> Result<stitch::Stitched, ScaleoutError> {
     let ctx = Ctx::new(dir, hooks)?;
     let s = StitchInputs::load(&ctx, dir, job)?;
-    Ok(stitch::stitch(
-        job,
-        &ctx.opts,
-        &s.info,
-        &ctx.frozen.plan,
-        &ctx.work,
-        &s.threshold,
-    )?)
+    Ok(s.stitch(&ctx, job).run()?)
 }
 
 /// Commits the stitch of `dir` (`stitch.json` after the output, whose length it records).
@@ -336,17 +341,7 @@ fn stitch_ranges(
                 let path = body_path(dir, range);
                 // A killed writer of this range left its temporary file; the lock says none runs.
                 io::remove_stale_temps(&path)?;
-                let body = stitch::write_body(
-                    &ctx.job,
-                    &ctx.opts,
-                    &s.info,
-                    plan,
-                    &ctx.work,
-                    &s.threshold,
-                    range,
-                    &path,
-                    &read,
-                )?;
+                let body = s.stitch(ctx, &ctx.job).write_body(range, &path, &read)?;
                 let bytes = std::fs::metadata(&path)
                     .map_err(|e| io::IoError::io(&path, e))?
                     .len();
@@ -380,7 +375,7 @@ fn stitch_ranges(
         Some(s) => s,
         None => StitchInputs::load(ctx, dir, &ctx.job)?,
     };
-    let stitched = stitch::assemble(&ctx.job, &ctx.opts, &s.info, plan, &s.threshold, &bodies)?;
+    let stitched = s.stitch(ctx, &ctx.job).assemble(&bodies)?;
     commit_stitch(dir, &ctx.job, &stitched)?;
     // The output holds the bodies now: their bytes go (their markers stay, for `status`).
     for (path, _) in &bodies {

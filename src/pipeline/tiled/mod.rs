@@ -62,7 +62,15 @@ pub(crate) fn run(
     timer.lap("tiles", &mut phases);
 
     let threshold = outliers::threshold(job, &plan, &work, &tiles.knn_mean)?;
-    let stitched = stitch::stitch(job, opts, info, &plan, &work, &threshold)?;
+    let stitched = stitch::Stitch {
+        job,
+        opts,
+        info,
+        plan: &plan,
+        work: &work,
+        threshold: &threshold,
+    }
+    .run()?;
     timer.lap("stitch", &mut phases);
     drop(work);
 
@@ -159,7 +167,16 @@ mod tests {
         assert_eq!(tiles.resumed, plan.tiles.len() as u64);
         assert_eq!(tiles.stats.moved, whole.stats.moved);
         let threshold = outliers::threshold(&job, &plan, &work, &tiles.knn_mean).unwrap();
-        let stitched = stitch::stitch(&job, &opts, &info, &plan, &work, &threshold).unwrap();
+        let stitched = stitch::Stitch {
+            job: &job,
+            opts: &opts,
+            info: &info,
+            plan: &plan,
+            work: &work,
+            threshold: &threshold,
+        }
+        .run()
+        .unwrap();
         assert_eq!(stitched.found, whole.outliers_found);
         assert_eq!(stitched.written, 20_000);
         assert_eq!(

@@ -100,50 +100,167 @@ impl Merged {
     }
 }
 
-/// Writes `job`'s output from its input (described by `info`) and the results in `work`.
-///
-/// With a plan in several parts and an output that can take bodies ([`Sink::splittable`]), the
-/// parts' record ranges are written side by side on the pool, each into a body of its own
-/// ([`write_body`], in a scratch directory inside `work`), which the output then takes in order
-/// ([`assemble`]); the bytes are those of one pass.
-///
-/// # Errors
-/// Read and write failures, cancellation.
-pub fn stitch(
-    job: &Job,
-    opts: &RunOptions,
-    info: &SourceInfo,
-    plan: &Plan,
-    work: &WorkDir,
-    threshold: &Threshold,
-) -> Result<Stitched, PipelineError> {
-    opts.progress.phase("stitch", plan.points);
-    let mut out = Output::create(job, opts, info, plan, threshold)?;
-    if by_ranges(plan, out.sink.as_ref()) > 1 {
-        let scratch = tempfile::Builder::new()
-            .prefix(".stitch.")
-            .tempdir_in(work.path())
-            .map_err(|e| IoError::io(work.path(), e))?;
-        let read = AtomicU64::new(0);
-        let bodies = (0..plan.parts())
-            .into_par_iter()
-            .map(|r| {
-                let path = body_path(scratch.path(), r);
-                write_body(job, opts, info, plan, work, threshold, r, &path, &read)
-                    .map(|b| (path, b))
-            })
-            .collect::<Result<Vec<_>, _>>()?;
-        return out.append(job, opts, plan, &bodies);
+/// What a stitch reads: the job, its input's description, the plan, the results in `work`,
+/// and the outliers' threshold.
+#[derive(Clone, Copy)]
+pub struct Stitch<'a> {
+    /// The job (its output is what the stitch writes).
+    pub job: &'a Job,
+    /// Progress and cancellation.
+    pub opts: &'a RunOptions,
+    /// The input's description.
+    pub info: &'a SourceInfo,
+    /// The plan.
+    pub plan: &'a Plan,
+    /// The work directory holding the tiles' results.
+    pub work: &'a WorkDir,
+    /// The outliers' threshold.
+    pub threshold: &'a Threshold,
+}
+
+impl Stitch<'_> {
+    /// Writes the job's output from its input and the results.
+    ///
+    /// With a plan in several parts and an output that can take bodies ([`Sink::splittable`]),
+    /// the parts' record ranges are written side by side on the pool, each into a body of its
+    /// own ([`Stitch::write_body`], in a scratch directory inside the work directory), which the
+    /// output then takes in order; the bytes are those of one pass.
+    ///
+    /// # Errors
+    /// Read and write failures, cancellation.
+    pub fn run(&self) -> Result<Stitched, PipelineError> {
+        let (job, plan, work) = (self.job, self.plan, self.work);
+        self.opts.progress.phase("stitch", plan.points);
+        let mut out = self.output()?;
+        if by_ranges(plan, out.sink.as_ref()) > 1 {
+            let scratch = tempfile::Builder::new()
+                .prefix(".stitch.")
+                .tempdir_in(work.path())
+                .map_err(|e| IoError::io(work.path(), e))?;
+            let read = AtomicU64::new(0);
+            let bodies = (0..plan.parts())
+                .into_par_iter()
+                .map(|r| {
+                    let path = body_path(scratch.path(), r);
+                    self.write_body(r, &path, &read).map(|b| (path, b))
+                })
+                .collect::<Result<Vec<_>, _>>()?;
+            return self.append(out, &bodies);
+        }
+        let merge = ResultMerge::open(work.path(), plan.tiles.len(), job.spec.params.write_normals)
+            .map_err(|e| PipelineError::tiling(&job.input, e))?;
+        let (extras, found, written) =
+            merge_into(job, self.info, &out.asm, merge, out.sink.as_mut(), |f| {
+                stream(job, self.opts, f)
+            })?;
+        let stitched = out.stitched(found, written);
+        out.sink.finish(&extras)?;
+        Ok(stitched)
     }
-    let merge = ResultMerge::open(work.path(), plan.tiles.len(), job.spec.params.write_normals)
+
+    /// Writes the job's output from the `bodies` of its stitch ranges, in range order (written
+    /// by [`Stitch::write_body`], perhaps by other tasks).
+    ///
+    /// # Errors
+    /// Read and write failures, cancellation; an output that cannot take bodies.
+    pub fn assemble(&self, bodies: &[(PathBuf, Body)]) -> Result<Stitched, PipelineError> {
+        self.opts.progress.phase("stitch", self.plan.points);
+        self.append(self.output()?, bodies)
+    }
+
+    /// The assembler of the job's output.
+    fn assembler(&self) -> Assembler {
+        Assembler::new(self.info, self.job.spec.outliers, self.threshold.value)
+            .writing_normals(self.job.spec.params.write_normals)
+    }
+
+    /// Creates the whole output's sink.
+    fn output(&self) -> Result<Output, PipelineError> {
+        let (job, plan) = (self.job, self.plan);
+        let asm = self.assembler();
+        let (dropped, removed) = if asm.keep_non_finite {
+            (0, 0)
+        } else {
+            (plan.points - plan.finite, self.threshold.removed)
+        };
+        let sink = io::create_with(
+            &job.output,
+            job.output_format,
+            self.info,
+            plan.points - dropped - removed,
+            &sink_options(job, self.opts),
+        )?;
+        Ok(Output { sink, asm, dropped })
+    }
+
+    /// Appends `bodies` to `out` in order, then what follows the input's points, and finishes.
+    fn append(
+        &self,
+        mut out: Output,
+        bodies: &[(PathBuf, Body)],
+    ) -> Result<Stitched, PipelineError> {
+        let (mut found, mut written) = (0, 0);
+        for (path, b) in bodies {
+            self.opts.check_cancel()?;
+            out.sink.append_body(path, &b.stats)?;
+            found += b.found;
+            written += b.stats.points;
+        }
+        let stitched = out.stitched(found, written);
+        out.sink.finish(&trailer(self.job, self.plan)?)?;
+        Ok(stitched)
+    }
+
+    /// Writes the body of stitch range `r` (the records of [`Plan::part_range`]`(r)`, as the
+    /// output holds them) to `path`, atomically; read counts are added to `read` for progress.
+    ///
+    /// # Errors
+    /// Read and write failures, cancellation, an input that cannot seek to the range.
+    pub fn write_body(&self, r: u64, path: &Path, read: &AtomicU64) -> Result<Body, PipelineError> {
+        let (job, opts, info) = (self.job, self.opts, self.info);
+        let asm = self.assembler();
+        let range = self.plan.part_range(r);
+        let merge = ResultMerge::open_range(
+            self.work.path(),
+            self.plan.tiles.len(),
+            job.spec.params.write_normals,
+            r,
+            range.clone(),
+        )
         .map_err(|e| PipelineError::tiling(&job.input, e))?;
-    let (extras, found, written) =
-        merge_into(job, info, &out.asm, merge, out.sink.as_mut(), |f| {
-            stream(job, opts, f)
+        // The format the whole output's sink resolved (its extension, else the input's).
+        let format = job
+            .output_format
+            .or_else(|| Format::from_path(&job.output).ok())
+            .unwrap_or(info.format);
+        let options = SinkOptions {
+            body: true,
+            ..sink_options(job, opts)
+        };
+        let mut sink = io::create_in(AtomicFile::create(path)?, format, info, 0, &options)?;
+        let ((), found, _) = merge_into(job, info, &asm, merge, sink.as_mut(), |f| {
+            let seeked = stream_range(job, opts, range.clone(), |b| {
+                f(b)?;
+                let n = b.len() as u64;
+                opts.progress
+                    .advance(read.fetch_add(n, Ordering::Relaxed) + n);
+                Ok(())
+            })?;
+            if seeked {
+                Ok(())
+            } else {
+                Err(PipelineError::from(IoError::invalid(
+                    &job.input,
+                    format!(
+                        "cannot seek to record {}, where stitch range {r} starts",
+                        range.start
+                    ),
+                )))
+            }
         })?;
-    let stitched = out.stitched(found, written);
-    out.sink.finish(&extras)?;
-    Ok(stitched)
+        let stats = sink.finish_body()?;
+        Ok(Body { stats, found })
+    }
 }
 
 /// The stitch ranges of `plan` for a sink like `sink`: its parts when the output can take
@@ -156,7 +273,7 @@ fn by_ranges(plan: &Plan, sink: &dyn Sink) -> u64 {
     }
 }
 
-/// The stitch ranges of `plan` for `job`'s output in `format` ([`stitch`]'s choice, made without
+/// The stitch ranges of `plan` for `job`'s output in `format` ([`Stitch::run`]'s choice, made without
 /// writing anything): what a scale-out job plans as stitch tasks.
 ///
 /// # Errors
@@ -190,49 +307,6 @@ struct Output {
 }
 
 impl Output {
-    fn create(
-        job: &Job,
-        opts: &RunOptions,
-        info: &SourceInfo,
-        plan: &Plan,
-        threshold: &Threshold,
-    ) -> Result<Output, PipelineError> {
-        let asm = assembler(job, info, threshold);
-        let (dropped, removed) = if asm.keep_non_finite {
-            (0, 0)
-        } else {
-            (plan.points - plan.finite, threshold.removed)
-        };
-        let sink = io::create_with(
-            &job.output,
-            job.output_format,
-            info,
-            plan.points - dropped - removed,
-            &sink_options(job, opts),
-        )?;
-        Ok(Output { sink, asm, dropped })
-    }
-
-    /// Appends `bodies` in order, then what follows the input's points, and finishes.
-    fn append(
-        mut self,
-        job: &Job,
-        opts: &RunOptions,
-        plan: &Plan,
-        bodies: &[(PathBuf, Body)],
-    ) -> Result<Stitched, PipelineError> {
-        let (mut found, mut written) = (0, 0);
-        for (path, b) in bodies {
-            opts.check_cancel()?;
-            self.sink.append_body(path, &b.stats)?;
-            found += b.found;
-            written += b.stats.points;
-        }
-        let stitched = self.stitched(found, written);
-        self.sink.finish(&trailer(job, plan)?)?;
-        Ok(stitched)
-    }
-
     fn stitched(&self, found: u64, written: u64) -> Stitched {
         Stitched {
             written,
@@ -243,29 +317,6 @@ impl Output {
     }
 }
 
-/// Writes `job`'s output from the `bodies` of its stitch ranges, in range order (written by
-/// [`write_body`], perhaps by other tasks).
-///
-/// # Errors
-/// Read and write failures, cancellation; an output that cannot take bodies.
-pub fn assemble(
-    job: &Job,
-    opts: &RunOptions,
-    info: &SourceInfo,
-    plan: &Plan,
-    threshold: &Threshold,
-    bodies: &[(PathBuf, Body)],
-) -> Result<Stitched, PipelineError> {
-    opts.progress.phase("stitch", plan.points);
-    Output::create(job, opts, info, plan, threshold)?.append(job, opts, plan, bodies)
-}
-
-/// The assembler of `job`'s output.
-fn assembler(job: &Job, info: &SourceInfo, threshold: &Threshold) -> Assembler {
-    Assembler::new(info, job.spec.outliers, threshold.value)
-        .writing_normals(job.spec.params.write_normals)
-}
-
 /// What a stitch range's body holds.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 pub struct Body {
@@ -273,68 +324,6 @@ pub struct Body {
     pub stats: BodyStats,
     /// Points of the range flagged or removed as outliers.
     pub found: u64,
-}
-
-/// Writes the body of stitch range `r` (the records of [`Plan::part_range`]`(r)`, as the output
-/// of `job` holds them, from the results in `work`) to `path`, atomically; read counts are
-/// added to `read` for progress.
-///
-/// # Errors
-/// Read and write failures, cancellation, an input that cannot seek to the range.
-#[allow(clippy::too_many_arguments)]
-pub fn write_body(
-    job: &Job,
-    opts: &RunOptions,
-    info: &SourceInfo,
-    plan: &Plan,
-    work: &WorkDir,
-    threshold: &Threshold,
-    r: u64,
-    path: &Path,
-    read: &AtomicU64,
-) -> Result<Body, PipelineError> {
-    let asm = assembler(job, info, threshold);
-    let range = plan.part_range(r);
-    let merge = ResultMerge::open_range(
-        work.path(),
-        plan.tiles.len(),
-        job.spec.params.write_normals,
-        r,
-        range.clone(),
-    )
-    .map_err(|e| PipelineError::tiling(&job.input, e))?;
-    // The format the whole output's sink resolved (its extension, else the input's).
-    let format = job
-        .output_format
-        .or_else(|| Format::from_path(&job.output).ok())
-        .unwrap_or(info.format);
-    let options = SinkOptions {
-        body: true,
-        ..sink_options(job, opts)
-    };
-    let mut sink = io::create_in(AtomicFile::create(path)?, format, info, 0, &options)?;
-    let ((), found, _) = merge_into(job, info, &asm, merge, sink.as_mut(), |f| {
-        let seeked = stream_range(job, opts, range.clone(), |b| {
-            f(b)?;
-            let n = b.len() as u64;
-            opts.progress
-                .advance(read.fetch_add(n, Ordering::Relaxed) + n);
-            Ok(())
-        })?;
-        if seeked {
-            Ok(())
-        } else {
-            Err(PipelineError::from(IoError::invalid(
-                &job.input,
-                format!(
-                    "cannot seek to record {}, where stitch range {r} starts",
-                    range.start
-                ),
-            )))
-        }
-    })?;
-    let stats = sink.finish_body()?;
-    Ok(Body { stats, found })
 }
 
 /// What follows the input's points ([`Source::finish`] after its last record), for the output's
