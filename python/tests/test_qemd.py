@@ -297,8 +297,12 @@ def test_gil_is_released_while_computing():
 
 
 def test_ctrl_c_stops_a_run_with_keyboard_interrupt(tmp_path):
+    # A process started with SIGINT ignored (a background job of a non-interactive shell, nohup)
+    # passes that on, and Python then installs no handler: install it, so the test does not
+    # depend on how the test run itself was started.
     code = (
-        "import sys, numpy as np, qemd\n"
+        "import signal, sys, numpy as np, qemd\n"
+        "signal.signal(signal.SIGINT, signal.default_int_handler)\n"
         "rng = np.random.default_rng(0)\n"
         "p = rng.random((1_000_000, 3))\n"
         "print('start', flush=True)\n"
