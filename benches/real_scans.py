@@ -609,7 +609,11 @@ def report(a, scans, methods, results, versions, elapsed, counts):
       "--clean SCAN --json` gives per class RMS|out − scan| / RMS|noisy − scan| (goal ≤ "
       f"{CLASS_RATIO:g} in every class) and, over the planar points (surface variation of the "
       "clean 16-NN ≤ 0.005), the RMS distance to the clean local plane, out / noisy (goal ≤ "
-      f"{PLANAR_RATIO:g}, and below every peer's).")
+      f"{PLANAR_RATIO:g}, and below every peer's). That plane runs through the clean list's "
+      "centroid, so on a curved patch it lies off the surface and flattening scores well on it; "
+      "on ring scans a list that is one ring also counts as planar. `benches/planar_lists.py` "
+      "gives the same ratio measured to the clean point and split by list shape "
+      "(docs/DECISIONS.md, \"The planar ratio rewards flattening\").")
     w("* **Inputs**: qemd reads and writes the scan's own format. The peers read XYZ: "
       "`qemd noise SCAN -o clean.xyz --level 0` and `qemd noise noisy.EXT -o noisy.xyz --level 0`, "
       "so every method denoises the same coordinates (checked at the end). The peers' drivers (`benches/cpp/`) write every input point, in the input's order.")
