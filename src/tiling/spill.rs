@@ -16,8 +16,8 @@
 //! (`part_<p>/`, see [`super::workdir`]): a tile has one of each per part, and readers read the
 //! parts in order. Each part appends a tile's records a buffer at a time, in global-index order
 //! across buffers; each buffer (a *run*) is written owned records first, in Morton order over the
-//! cloud's bounds and cut into blocks of [`SPILL_BLOCK`] records, then the halo copies as one
-//! block, present even when empty and flagged `RUN_END`. The block table gives each block's
+//! cloud's bounds and cut into blocks of [`SPILL_BLOCK`] records (each block's records in index
+//! order), then the halo copies as one block, present even when empty and flagged `RUN_END`. The block table gives each block's
 //! record count and the box of its owned points (empty for the halo block), so halo
 //! growth, which reads only owned points near a group, reads only the blocks whose box meets
 //! the group's span ([`read_owned_near`]) instead of whole files. Readers return records in
@@ -174,7 +174,10 @@ impl SpillWriter {
                 }
             }
         };
-        for keys in self.keys[..owned].chunks(SPILL_BLOCK) {
+        for keys in self.keys[..owned].chunks_mut(SPILL_BLOCK) {
+            // A block's records in buffer order, which is index order: readers merge sorted
+            // blocks instead of sorting scattered records (the box is the same either way).
+            keys.sort_unstable_by_key(|k| k & PLACE);
             block(keys, true);
         }
         // Always, even empty: it ends the run for readers.
@@ -445,13 +448,21 @@ fn read_blocks(
         at += bytes;
         if end {
             read_at(&mut f, &path, pending.take(), &mut buf, &mut keep, out)?;
-            out[run_from..].sort_unstable_by_key(|p| p.index);
+            sort_run(&mut out[run_from..]);
             run_from = out.len();
         }
     }
     read_at(&mut f, &path, pending, &mut buf, &mut keep, out)?;
-    out[run_from..].sort_unstable_by_key(|p| p.index);
+    sort_run(&mut out[run_from..]);
     Ok(())
+}
+
+/// Orders the records read from one run by index. Each block holds its records in index order
+/// (files written before that: in Morton order), so the records are a sequence of sorted
+/// stretches, which the standard library's stable sort finds and merges; indices are distinct
+/// within a run, so the result is the one order whichever sort is used.
+fn sort_run(records: &mut [TilePoint]) {
+    records.sort_by_key(|p| p.index);
 }
 
 /// Decodes the byte range `range` (first byte, bytes) of `f`, if any.
@@ -906,6 +917,36 @@ mod tests {
                 Err(TilingError::Io { .. })
             ));
         }
+    }
+
+    #[test]
+    fn issue16_each_block_holds_its_records_in_index_order() {
+        let n = 40_000u64;
+        let dir = tempfile::tempdir().unwrap();
+        scattered_tile(dir.path(), 0, 0..n, n, 64 << 10);
+        let part = part_dir(dir.path(), 0);
+        let table = std::fs::read(blocks_path(&part, 0)).unwrap();
+        let file = std::fs::read(spill_path(&part, 0)).unwrap();
+        let (mut at, mut last, mut descents) = (0, None, 0);
+        for e in table.chunks_exact(BLOCK_ENTRY) {
+            let count = u64::from_le_bytes(e[0..8].try_into().unwrap()) & !RUN_END;
+            let indices: Vec<u64> = file[at..at + count as usize * SPILL_RECORD]
+                .chunks_exact(SPILL_RECORD)
+                .map(|r| decode_spill(r).0 & !(HALO | HELD))
+                .collect();
+            assert!(
+                indices.windows(2).all(|w| w[0] < w[1]),
+                "block at byte {at}"
+            );
+            if let (Some(l), Some(&f)) = (last, indices.first()) {
+                descents += usize::from(f < l);
+            }
+            last = indices.last().copied().or(last);
+            at += count as usize * SPILL_RECORD;
+        }
+        assert_eq!(at, file.len());
+        // The blocks themselves follow the Morton order, not the index order.
+        assert!(descents > 10, "{descents}");
     }
 
     #[test]
