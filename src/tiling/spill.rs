@@ -17,11 +17,12 @@
 //! parts in order. Each part appends a tile's records a buffer at a time, in global-index order
 //! across buffers; each buffer (a *run*) is written owned records first, in Morton order over the
 //! cloud's bounds and cut into blocks of [`SPILL_BLOCK`] records (each block's records in index
-//! order), then the halo copies as one block, present even when empty and flagged `RUN_END`. The block table gives each block's
-//! record count and the box of its owned points (empty for the halo block), so halo
-//! growth, which reads only owned points near a group, reads only the blocks whose box meets
-//! the group's span ([`read_owned_near`]) instead of whole files. Readers return records in
-//! global-index order (sorting each run's records), so results never depend on the file order.
+//! order), then the halo copies as one block, present even when empty and flagged `RUN_END`.
+//! The block table gives each block's record count and the box of its owned points (empty for
+//! the halo block), so halo growth, which reads only owned points near a group, reads only the
+//! blocks whose box meets the group's span ([`read_owned_near`]) instead of whole files.
+//! Readers return records in global-index order (merging each run's sorted blocks), so results
+//! never depend on the file order.
 
 use std::cmp::Reverse;
 use std::collections::BinaryHeap;
@@ -460,7 +461,8 @@ fn read_blocks(
 /// Orders the records read from one run by index. Each block holds its records in index order
 /// (files written before that: in Morton order), so the records are a sequence of sorted
 /// stretches, which the standard library's stable sort finds and merges; indices are distinct
-/// within a run, so the result is the one order whichever sort is used.
+/// within a run, so the result is the one order whichever sort is used. The sort's scratch is
+/// at most one run's records (a run holds at most 2¹⁶), small beside the budget.
 fn sort_run(records: &mut [TilePoint]) {
     records.sort_by_key(|p| p.index);
 }
