@@ -273,8 +273,8 @@ fn by_ranges(plan: &Plan, sink: &dyn Sink) -> u64 {
     }
 }
 
-/// The stitch ranges of `plan` for `job`'s output in `format` ([`Stitch::run`]'s choice, made without
-/// writing anything): what a scale-out job plans as stitch tasks.
+/// The stitch ranges of `plan` for `job`'s output in `format` ([`Stitch::run`]'s choice, made
+/// without writing anything): what a scale-out job plans as stitch tasks.
 ///
 /// # Errors
 /// An output that cannot be created like the input (an option its format cannot carry).
