@@ -9,6 +9,7 @@
 //!   `robust` truncated pseudo-inverse, or a `regularised` minimiser that bounds the step.
 //! * [`pca_fit`] gives a neighbourhood's principal axes; [`pca_normal`] its plane (smallest
 //!   eigenvector of the centred covariance).
+//! * [`floor_i64`] keys a coordinate to its cell without a libm call.
 //! * [`ExactSum`] adds f64 values without rounding, so global means are the same bits whatever the
 //!   order or grouping of the terms (tiles, threads).
 //!
@@ -16,9 +17,11 @@
 //! minimised near the origin returns an offset from `v`. That keeps every intermediate small even on
 //! UTM-sized coordinates, and makes the operator exactly translation invariant in exact arithmetic.
 
+mod cell;
 mod eigen;
 mod sum;
 
+pub use cell::floor_i64;
 pub use eigen::{Eigen, SymMat3, any_orthogonal};
 pub use sum::ExactSum;
 

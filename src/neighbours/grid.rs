@@ -44,6 +44,8 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use rayon::prelude::*;
 use rustc_hash::FxHashMap;
 
+use crate::geometry::floor_i64;
+
 /// Squared distance, coordinate by coordinate (the same formula as the oracle).
 #[inline(always)]
 pub(crate) fn dist2(a: [f64; 3], b: [f64; 3]) -> f64 {
@@ -306,7 +308,7 @@ impl Level {
     /// Cell coordinates of `p` (non-negative for the level's own points).
     #[inline]
     fn coord(&self, p: [f64; 3]) -> [i64; 3] {
-        let c = |a: usize| ((p[a] - self.corner[a]) / self.cell).floor() as i64;
+        let c = |a: usize| floor_i64((p[a] - self.corner[a]) / self.cell);
         [c(0), c(1), c(2)]
     }
 

@@ -11,9 +11,10 @@
 //!     pending = one group G
 //!        ▼
 //!     for each G: load every point of the cells within hᵣ of G's points (Shell) from the
-//!                 spill files (≤ max_points, else G is cut in two at the median of its longest
-//!                 axis; a group of at most LONE_GROUP points that cannot fit is set aside as
-//!                 *lone*)
+//!                 spill files, side by side (≤ max_points, else G is cut in two at the median
+//!                 of its longest axis; a group of at most LONE_GROUP points that cannot fit is
+//!                 set aside as *lone*; lower bounds from the occupancy grid and the block
+//!                 tables refuse a load that cannot fit before a record is read)
 //!                 run the kernel with G owned; exact results are kept, the rest stay pending
 //!     the lone points, together: load only the cells their dependencies reach (by_cells on
 //!                 FineCells; one spill read per round serves them all), halved while over
@@ -29,15 +30,16 @@
 //! by cells, not by box, is what keeps a round from reloading the tile. See docs/DECISIONS.md
 //! (issue 16).
 
-use std::cell::Cell;
 use std::path::Path;
+use std::sync::atomic::{AtomicU64, Ordering};
 
 use glam::DVec3;
+use rayon::prelude::*;
 
 use super::fine::{self, FineCells};
 use super::plan::{self, Plan};
 use super::shell::{self, Shell};
-use super::spill::{TilePoint, read_owned_near};
+use super::spill::{TilePoint, owned_within, read_owned_near};
 use super::{TileBudget, TilingError};
 use crate::denoise::DenoiseError;
 use crate::denoise::cloud::CloudRun;
@@ -159,7 +161,7 @@ pub fn with_exact_halo<V: Default>(
             check_cancel()?;
             let points = group.iter().map(|g| g.1);
             let shell = Shell::around(plan.origin, plan.bounds, points, halo, budget.max_points);
-            let loaded = match load_shell(dir, plan, &shell, &group, budget.max_points)? {
+            let loaded = match load_shell(dir, plan, budget, (&shell, halo), &group)? {
                 Ok(loaded) => loaded,
                 Err(found) if group.len() <= LONE_GROUP => {
                     lonely.extend(group.into_iter().map(|g| (g, found)));
@@ -252,8 +254,10 @@ pub fn with_exact_halo<V: Default>(
 
 /// Groups of at most this many points whose cells do not fit go to [`by_cells`] with the lone
 /// points, instead of halving on: halving reads the spill files once per half, down to single
-/// points, and the cells a point's dependencies reach are far fewer than its halo's.
-const LONE_GROUP: usize = 32;
+/// points, and the cells a point's dependencies reach are far fewer than its halo's. Swept on
+/// the 10 M cluttered scene at 200 MiB (same bytes each time; BENCHMARKS, issue 16): 32 →
+/// 339 CPU-s, 256 → 221, 1024 → 218, 4096 → 235, 16 384 → 242, every group → 291.
+const LONE_GROUP: usize = 1024;
 
 /// Rounds of [`by_cells`] per hop of the results (each round adds the cells the incomplete balls
 /// of the dependencies touch; a chain of `hops` hops needs about that many).
@@ -309,7 +313,14 @@ fn by_cells<V>(
     for _ in 0..CELL_ROUNDS_PER_HOP * (hops + 2) {
         check_cancel()?;
         let span = cells.span();
-        let pts = match load_where(dir, plan, &span, |p| cells.contains(p), group, Some(max))? {
+        let pts = match load_where(
+            dir,
+            plan,
+            (&span, |_| true),
+            |p| cells.contains(p),
+            group,
+            Some(max),
+        )? {
             Ok(p) => p,
             Err(found) => return Ok(ByCells::Over(found)),
         };
@@ -483,6 +494,14 @@ fn halves<T>(group: &mut Vec<T>, at: impl Fn(&T) -> Pending) -> (Vec<T>, Vec<T>)
     (std::mem::take(group), right)
 }
 
+/// The (tile, part) spill files holding the owned records of the tiles whose core touches
+/// `span`, in the order a load appends them.
+fn reads_of(plan: &Plan, span: &Aabb) -> Vec<(usize, u64)> {
+    touching(plan, span)
+        .flat_map(|t| (0..plan.parts()).map(move |part| (t, part)))
+        .collect()
+}
+
 /// Tiles whose core touches `bx` (their owned records are the points in it).
 fn touching(plan: &Plan, bx: &Aabb) -> impl Iterator<Item = usize> {
     plan.tiles
@@ -568,57 +587,103 @@ fn load_box(
     max: Option<u64>,
 ) -> Result<Result<Vec<TilePoint>, u64>, TilingError> {
     let inside = |p: DVec3| (0..3).all(|a| p[a] >= bx.min[a] && p[a] <= bx.max[a]);
-    load_where(dir, plan, bx, inside, group, max)
+    load_where(dir, plan, (bx, |_| true), inside, group, max)
 }
 
+/// Cells the occupancy grid's lower bound on a group's points may visit (a few milliseconds).
+const BOUND_VISITS: usize = 1 << 16;
+
 /// Every point of the cloud in `shell`'s cells (from the owned records of the tiles its span
-/// touches), the points of `group` marked owned; `Err(found)` when there are more than `max`
-/// (`found` of them were seen before the read stopped).
+/// touches), the points of `group` marked owned; `Err(found)` when there are more than the
+/// budget allows one run (`found` of them were seen before the read stopped). The occupancy
+/// grid's cells inside the group's halo cubes, which the shell covers, bound the count from
+/// below: past the budget, the group is refused without reading anything (in the 10 M
+/// cluttered scene at 200 MiB nine loads in ten were refused, after reading 300 000 records
+/// each; BENCHMARKS, issue 16). The bound is the same on every run, so the same loads happen.
 fn load_shell(
     dir: &Path,
     plan: &Plan,
-    shell: &Shell,
+    budget: &TileBudget,
+    (shell, halo): (&Shell, f64),
     group: &[Pending],
-    max: Option<u64>,
 ) -> Result<Result<Vec<TilePoint>, u64>, TilingError> {
-    load_where(dir, plan, &shell.span(), |p| shell.contains(p), group, max)
+    let max = budget.max_points;
+    if let (Some(o), Some(m)) = (budget.occupancy, max) {
+        // The cube of half-side `halo` around each group point lies in the shell's cells.
+        let inside = o.points_within_cubes(
+            group.iter().map(|g| g.1),
+            halo * (1.0 - 1e-6),
+            BOUND_VISITS,
+            m,
+        );
+        if inside > m {
+            return Ok(Err(inside));
+        }
+    }
+    if let Some(m) = max {
+        // The spill blocks whose box the shell covers are kept whole by the load.
+        let span = shell.span();
+        let reads = reads_of(plan, &span);
+        let within = reads
+            .par_iter()
+            .map(|&(t, part)| owned_within(dir, part..part + 1, t, |b| shell.covers(b)))
+            .try_reduce(|| 0, |a, b| Ok(a.saturating_add(b)))?;
+        if within > m {
+            return Ok(Err(within));
+        }
+    }
+    let span = shell.span();
+    let near = |b: &Aabb| shell.meets(b);
+    load_where(dir, plan, (&span, near), |p| shell.contains(p), group, max)
 }
 
 /// Every point of the cloud in `span` for which `keep` holds (from the owned records of the
-/// tiles `span` touches), the points of `group` marked owned; `Err(found)` when there are more
-/// than `max`.
+/// tiles `span` touches, in the blocks `near` passes: see [`read_owned_near`]), the points of
+/// `group` marked owned; `Err(found)` when there are more than `max`. The spill files of each (tile, part) are read side by side on the pool and
+/// appended in (tile, part) order, so the list is the one a serial read gives; a shared count
+/// stops every read once past `max` (`found` is then at least `max + 1`, how far past depends
+/// on the threads).
 fn load_where(
     dir: &Path,
     plan: &Plan,
-    span: &Aabb,
-    keep: impl Fn(DVec3) -> bool,
+    (span, near): (&Aabb, impl Fn(&Aabb) -> bool + Sync),
+    keep: impl Fn(DVec3) -> bool + Sync,
     group: &[Pending],
     max: Option<u64>,
 ) -> Result<Result<Vec<TilePoint>, u64>, TilingError> {
     let mut mine: Vec<u64> = group.iter().map(|g| g.0).collect();
     mine.sort_unstable();
     let max = max.unwrap_or(u64::MAX);
-    let count = Cell::new(0u64);
-    let mut pts = Vec::new();
-    for other in touching(plan, span) {
-        read_owned_near(
-            dir,
-            plan.parts(),
-            other,
-            span,
-            |p| {
-                if !keep(p) {
-                    return false;
-                }
-                count.set(count.get() + 1);
-                // Past the limit the points are counted, not kept.
-                count.get() <= max
-            },
-            &mut pts,
-        )?;
-        if count.get() > max {
-            return Ok(Err(count.get()));
-        }
+    let count = AtomicU64::new(0);
+    let reads = reads_of(plan, span);
+    let runs = reads
+        .par_iter()
+        .map(|&(t, part)| {
+            let mut pts = Vec::new();
+            if count.load(Ordering::Relaxed) > max {
+                return Ok(pts);
+            }
+            read_owned_near(
+                dir,
+                part..part + 1,
+                t,
+                (span, &near),
+                |p| {
+                    // Past the limit the points are counted, not kept.
+                    keep(p) && count.fetch_add(1, Ordering::Relaxed) < max
+                },
+                &mut pts,
+            )?;
+            Ok(pts)
+        })
+        .collect::<Result<Vec<Vec<TilePoint>>, TilingError>>()?;
+    let found = count.into_inner();
+    if found > max {
+        return Ok(Err(found));
+    }
+    let mut pts = Vec::with_capacity(runs.iter().map(Vec::len).sum());
+    for run in runs {
+        pts.extend(run);
     }
     for p in &mut pts {
         p.owned = mine.binary_search(&p.index).is_ok();

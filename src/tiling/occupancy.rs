@@ -22,7 +22,9 @@
 //! conservative. Only the speed depends on the grid, never a result.
 
 use glam::DVec3;
-use rustc_hash::FxHashMap;
+use rustc_hash::{FxHashMap, FxHashSet};
+
+use crate::geometry::floor_i64;
 
 /// Most cells kept (about 40 MB at the worst); beyond it the cells double in size.
 pub const MAX_CELLS: usize = 1 << 20;
@@ -68,8 +70,8 @@ impl Occupancy {
     /// The cell of `p` (monotone in each coordinate).
     fn key(&self, p: DVec3) -> [i64; 3] {
         // Saturating float-to-int casts: positions are within ±1e12 and cells positive.
-        let c = ((p - self.origin) / self.base).floor();
-        [c.x as i64, c.y as i64, c.z as i64].map(|v| v >> self.level.min(63))
+        let c = (p - self.origin) / self.base;
+        [floor_i64(c.x), floor_i64(c.y), floor_i64(c.z)].map(|v| v >> self.level.min(63))
     }
 
     /// The key of `p` in the grid of cells `2^shift` times finer along each axis, with the same
@@ -78,11 +80,11 @@ impl Occupancy {
     pub fn fine_key(&self, p: DVec3, shift: u32) -> [i64; 3] {
         let y = (p - self.origin) / self.base;
         if self.level >= shift {
-            let c = y.floor();
-            [c.x as i64, c.y as i64, c.z as i64].map(|v| v >> (self.level - shift).min(63))
+            [floor_i64(y.x), floor_i64(y.y), floor_i64(y.z)]
+                .map(|v| v >> (self.level - shift).min(63))
         } else {
-            let c = (y * f64::from(1u32 << (shift - self.level).min(31))).floor();
-            [c.x as i64, c.y as i64, c.z as i64]
+            let c = y * f64::from(1u32 << (shift - self.level).min(31));
+            [floor_i64(c.x), floor_i64(c.y), floor_i64(c.z)]
         }
     }
 
@@ -265,6 +267,58 @@ impl Occupancy {
             .sum()
     }
 
+    /// A lower bound on the points of the cloud in the union of the cubes of half-side `half`
+    /// around `centres`: the counts of distinct cells lying wholly inside one of the cubes
+    /// (with a margin for rounding). Visits at most `visits` cells and stops once the bound
+    /// passes `stop`; any subset of those cells still bounds from below. What lets a growth group
+    /// that cannot fit its run be split without reading the spill files first.
+    pub fn points_within_cubes(
+        &self,
+        centres: impl Iterator<Item = DVec3>,
+        half: f64,
+        visits: usize,
+        stop: u64,
+    ) -> u64 {
+        let cell = self.cell();
+        let mut seen = FxHashSet::default();
+        let (mut sum, mut left) = (0u64, visits);
+        for c in centres {
+            // Cells k with k ≥ lo and k + 1 ≤ hi lie inside the cube; the margins keep them
+            // inside under the rounding of keys and of these quotients.
+            let lo = (c - DVec3::splat(half) - self.origin) / cell + DVec3::splat(1e-6);
+            let hi = (c + DVec3::splat(half) - self.origin) / cell - DVec3::splat(1e-6);
+            if !(lo.is_finite() && hi.is_finite()) {
+                continue;
+            }
+            let first = lo.ceil();
+            let last = hi.floor() - DVec3::ONE;
+            if (0..3).any(|a| first[a] > last[a]) {
+                continue;
+            }
+            let span = last - first + DVec3::ONE;
+            if span.x * span.y * span.z > left as f64 {
+                return sum;
+            }
+            left -= (span.x * span.y * span.z) as usize;
+            for x in first.x as i64..=last.x as i64 {
+                for y in first.y as i64..=last.y as i64 {
+                    for z in first.z as i64..=last.z as i64 {
+                        let k = [x, y, z];
+                        if let Some(&n) = self.counts.get(&k)
+                            && seen.insert(k)
+                        {
+                            sum += n;
+                            if sum > stop {
+                                return sum;
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        sum
+    }
+
     /// True when every point within √`r2` of `p` is among the loaded ones: every cell the ball's
     /// bounding box touches holds no more points overall than were loaded from it.
     pub fn complete(&self, loaded: &Loaded, p: DVec3, r2: f64) -> bool {
@@ -439,6 +493,57 @@ mod tests {
         assert!(g.complete(&all, inside[0], 9.0));
         assert!(!g.complete(&all, inside[0], 1e6));
         assert!(!g.complete(&all, inside[0], f64::INFINITY));
+    }
+
+    #[test]
+    fn issue16_points_within_cubes_bounds_the_count_from_below() {
+        // Points on a jittered lattice at three levels (coarse grids: the cells have levels).
+        let pts: Vec<DVec3> = (0..4000u64)
+            .map(|i| {
+                let k = crate::points::sample_key(i);
+                let j = |s: u64| ((k >> s) % 1000) as f64 / 1000.0;
+                DVec3::new(j(0) * 7.0, j(10) * 5.0 - 2.0, j(20) * 3.0 + 1e5)
+            })
+            .collect();
+        for (cell, level_up) in [(0.4, 0), (0.1, 3)] {
+            let mut g = Occupancy::new(cell, DVec3::new(-1.0, -3.0, 1e5 - 2.0));
+            g.level = level_up;
+            for p in &pts {
+                g.add(*p);
+            }
+            for (centres, half) in [
+                (vec![DVec3::new(3.0, 0.0, 1e5 + 1.5)], 1.0),
+                (
+                    vec![
+                        DVec3::new(3.0, 0.0, 1e5 + 1.5),
+                        DVec3::new(4.0, 1.0, 1e5 + 2.0),
+                    ],
+                    1.3,
+                ),
+                (vec![DVec3::new(1.0, -1.0, 1e5)], 0.1),
+                (pts[..50].to_vec(), 0.6),
+            ] {
+                let exact = pts
+                    .iter()
+                    .filter(|p| {
+                        centres
+                            .iter()
+                            .any(|c| (0..3).all(|a| (p[a] - c[a]).abs() <= half))
+                    })
+                    .count() as u64;
+                let bound = g.points_within_cubes(centres.iter().copied(), half, 1 << 16, u64::MAX);
+                assert!(bound <= exact, "{cell} {half}: {bound} > {exact}");
+                if half >= 1.0 && level_up == 0 {
+                    assert!(bound * 4 >= exact, "{cell} {half}: {bound} of {exact}");
+                }
+                // Stopping early or visiting fewer cells still bounds from below.
+                assert!(
+                    g.points_within_cubes(centres.iter().copied(), half, 10, u64::MAX) <= bound
+                );
+                let stopped = g.points_within_cubes(centres.iter().copied(), half, 1 << 16, 5);
+                assert!(stopped <= bound && (stopped > 5 || stopped == bound));
+            }
+        }
     }
 
     #[test]

@@ -19,6 +19,7 @@
 use glam::DVec3;
 use rustc_hash::FxHashSet;
 
+use crate::geometry::floor_i64;
 use crate::points::Aabb;
 
 /// Cells per halo: a group point's cell and `DILATION` cells on every side cover the cube of
@@ -38,6 +39,12 @@ const MIN_CELLS: usize = 1 << 12;
 
 /// Most cells a ball's bounding box may touch and still be proven.
 const MAX_VISITS: i64 = 4096;
+
+/// Most cells in the box of a shell's keys for its lookups to use a bitmap (2 MiB) instead of
+/// the hash set: a growth load asks for the cell of every record it reads, and hashing was the
+/// largest cost of a growth-heavy tile (`perf`: 11 % of the CPU of the 10 M cluttered scene at
+/// 200 MiB; BENCHMARKS, issue 16).
+const DENSE_BITS: u64 = 1 << 24;
 
 /// Most cells a set of loaded cells may keep for kernel runs of at most `max_points` points:
 /// one per `POINTS_PER_CELL` (8), between `MIN_CELLS` (2¹²) and `MAX_CELLS` (2¹⁸).
@@ -61,7 +68,66 @@ pub struct Shell {
     cell: f64,
     bounds: Aabb,
     cells: FxHashSet<[i64; 3]>,
+    dense: Option<Dense>,
     span: Aabb,
+}
+
+/// The loaded cells as one bit per cell of the box their keys span.
+struct Dense {
+    lo: [i64; 3],
+    dims: [u64; 3],
+    bits: Vec<u64>,
+}
+
+impl Dense {
+    /// The bitmap of `cells`, when their keys' box holds at most [`DENSE_BITS`] cells.
+    fn of(cells: &FxHashSet<[i64; 3]>) -> Option<Dense> {
+        let mut lo = [i64::MAX; 3];
+        let mut hi = [i64::MIN; 3];
+        for c in cells {
+            for a in 0..3 {
+                lo[a] = lo[a].min(c[a]);
+                hi[a] = hi[a].max(c[a]);
+            }
+        }
+        let mut dims = [0u64; 3];
+        let mut total = 1u64;
+        for a in 0..3 {
+            let d = u64::try_from(i128::from(hi[a]) - i128::from(lo[a]) + 1).ok()?;
+            total = total.checked_mul(d).filter(|&t| t <= DENSE_BITS)?;
+            dims[a] = d;
+        }
+        let mut dense = Dense {
+            lo,
+            dims,
+            bits: vec![0; total.div_ceil(64) as usize],
+        };
+        for c in cells {
+            let i = dense.bit(*c).expect("a cell lies in its own box");
+            dense.bits[(i / 64) as usize] |= 1 << (i % 64);
+        }
+        Some(dense)
+    }
+
+    /// The bit of cell `c`, `None` outside the box.
+    #[inline]
+    fn bit(&self, c: [i64; 3]) -> Option<u64> {
+        let mut i = 0u64;
+        for ((&c, &lo), &dim) in c.iter().zip(&self.lo).zip(&self.dims) {
+            let o = i128::from(c) - i128::from(lo);
+            if !(0..i128::from(dim)).contains(&o) {
+                return None;
+            }
+            i = i * dim + o as u64;
+        }
+        Some(i)
+    }
+
+    #[inline]
+    fn contains(&self, c: [i64; 3]) -> bool {
+        self.bit(c)
+            .is_some_and(|i| self.bits[(i / 64) as usize] >> (i % 64) & 1 == 1)
+    }
 }
 
 impl Shell {
@@ -81,6 +147,7 @@ impl Shell {
             cell: halo / DILATION as f64,
             bounds,
             cells: FxHashSet::default(),
+            dense: None,
             span: Aabb::empty(),
         };
         let mut seeds = shell.seeds(group.clone());
@@ -110,7 +177,17 @@ impl Shell {
         for &c in &shell.cells {
             shell.span.union(&shell.cell_box(c));
         }
+        shell.dense = Dense::of(&shell.cells);
         shell
+    }
+
+    /// True when cell `key` is loaded.
+    #[inline]
+    fn has(&self, key: [i64; 3]) -> bool {
+        match &self.dense {
+            Some(d) => d.contains(key),
+            None => self.cells.contains(&key),
+        }
     }
 
     /// The distinct cells holding the points of `group`.
@@ -121,8 +198,8 @@ impl Shell {
     /// The cell of `p` (monotone in each coordinate; saturating casts: positions are finite and
     /// within ±1e12 of the origin, and the cell is positive).
     fn key(&self, p: DVec3) -> [i64; 3] {
-        let c = ((p - self.origin) / self.cell).floor();
-        [c.x as i64, c.y as i64, c.z as i64]
+        let c = (p - self.origin) / self.cell;
+        [floor_i64(c.x), floor_i64(c.y), floor_i64(c.z)]
     }
 
     /// The closed box of cell `key`, padded so it holds every point keyed to the cell.
@@ -144,8 +221,51 @@ impl Shell {
     pub fn contains(&self, p: DVec3) -> bool {
         // Most records a group reads lie outside the span: compare before hashing.
         let span = &self.span;
-        (0..3).all(|a| p[a] >= span.min[a] && p[a] <= span.max[a])
-            && self.cells.contains(&self.key(p))
+        (0..3).all(|a| p[a] >= span.min[a] && p[a] <= span.max[a]) && self.has(self.key(p))
+    }
+
+    /// False only when no point in the closed box `b` lies in a loaded cell: keys are monotone in
+    /// each coordinate, so such a point's key lies between those of the box's corners. True as
+    /// well for a box over more than [`MAX_VISITS`] cells. What picks the spill blocks a load
+    /// reads: the span of a shell along a tile's faces is the whole tile.
+    pub fn meets(&self, b: &Aabb) -> bool {
+        let (mut lo, mut hi) = (self.key(b.min), self.key(b.max));
+        if let Some(d) = &self.dense {
+            // Outside the bitmap's box no cell is loaded.
+            for a in 0..3 {
+                let top = d.lo[a].saturating_add(i64::try_from(d.dims[a]).unwrap_or(i64::MAX) - 1);
+                lo[a] = lo[a].max(d.lo[a]);
+                hi[a] = hi[a].min(top);
+            }
+        }
+        if (0..3).any(|a| lo[a] > hi[a]) {
+            return false;
+        }
+        let span = |a: usize| hi[a].saturating_sub(lo[a]).saturating_add(1);
+        if span(0).saturating_mul(span(1)).saturating_mul(span(2)) > MAX_VISITS {
+            return true;
+        }
+        (lo[0]..=hi[0])
+            .any(|x| (lo[1]..=hi[1]).any(|y| (lo[2]..=hi[2]).any(|z| self.has([x, y, z]))))
+    }
+
+    /// True when a load keeps every point in the closed box `b`: the box lies in the span and
+    /// every cell it touches is loaded (at most [`MAX_VISITS`] cells are looked at). False for an
+    /// empty box.
+    pub fn covers(&self, b: &Aabb) -> bool {
+        if (0..3).any(|a| !(b.min[a] >= self.span.min[a] && b.max[a] <= self.span.max[a])) {
+            return false;
+        }
+        let (lo, hi) = (self.key(b.min), self.key(b.max));
+        if (0..3).any(|a| lo[a] > hi[a]) {
+            return false;
+        }
+        let span = |a: usize| hi[a].saturating_sub(lo[a]).saturating_add(1);
+        if span(0).saturating_mul(span(1)).saturating_mul(span(2)) > MAX_VISITS {
+            return false;
+        }
+        (lo[0]..=hi[0])
+            .all(|x| (lo[1]..=hi[1]).all(|y| (lo[2]..=hi[2]).all(|z| self.has([x, y, z]))))
     }
 
     /// True when every point of the cloud in the ball (`p`, √`r2`) lies in a loaded cell.
@@ -172,9 +292,8 @@ impl Shell {
         if span(0).saturating_mul(span(1)).saturating_mul(span(2)) > MAX_VISITS {
             return false;
         }
-        (lo[0]..=hi[0]).all(|x| {
-            (lo[1]..=hi[1]).all(|y| (lo[2]..=hi[2]).all(|z| self.cells.contains(&[x, y, z])))
-        })
+        (lo[0]..=hi[0])
+            .all(|x| (lo[1]..=hi[1]).all(|y| (lo[2]..=hi[2]).all(|z| self.has([x, y, z]))))
     }
 }
 
@@ -238,6 +357,100 @@ mod tests {
                 }
             }
         }
+    }
+
+    #[test]
+    fn the_bitmap_and_the_hash_set_hold_the_same_cells() {
+        let group = [DVec3::new(0.3, -1.7, 2.05), DVec3::new(4.0, 4.0, 4.0)];
+        let mut shell = Shell::around(DVec3::ZERO, bounds(), group.iter().copied(), 0.25, None);
+        assert!(shell.dense.is_some());
+        let probes: Vec<DVec3> = (0..20_000)
+            .map(|i| {
+                let k = crate::points::sample_key(i);
+                let c = |s: u64| ((k >> s) % 1000) as f64 / 1000.0 * 9.0 - 2.5;
+                DVec3::new(c(0), c(10), c(20))
+            })
+            .chain(group.iter().flat_map(|g| {
+                (0..125).map(move |i| {
+                    *g + DVec3::new((i % 5) as f64, ((i / 5) % 5) as f64, (i / 25) as f64) * 0.15
+                        - 0.3
+                })
+            }))
+            .collect();
+        let with: Vec<(bool, bool)> = probes
+            .iter()
+            .map(|&p| (shell.contains(p), shell.complete(p, 0.01)))
+            .collect();
+        assert!(with.iter().any(|w| w.0) && with.iter().any(|w| !w.0));
+        shell.dense = None;
+        let without: Vec<(bool, bool)> = probes
+            .iter()
+            .map(|&p| (shell.contains(p), shell.complete(p, 0.01)))
+            .collect();
+        assert_eq!(with, without);
+    }
+
+    #[test]
+    fn issue16_a_block_holding_a_loaded_point_meets_the_shell() {
+        let group = [DVec3::new(0.3, -1.7, 2.05), DVec3::new(4.0, 4.0, 4.0)];
+        let shell = Shell::around(DVec3::ZERO, bounds(), group.iter().copied(), 0.25, None);
+        let mut sparse = Shell::around(DVec3::ZERO, bounds(), group.iter().copied(), 0.25, None);
+        sparse.dense = None;
+        let (mut met, mut missed) = (0, 0);
+        for i in 0..5_000u64 {
+            // A "block": the box of a few points near each other.
+            let k = crate::points::sample_key(i);
+            let j = |s: u64| ((k >> s) % 1000) as f64 / 1000.0;
+            let c = group[(i % 2) as usize] + DVec3::new(j(0), j(10), j(20)) * 1.6 - 0.8;
+            let size = j(30) * 0.3;
+            let pts: Vec<DVec3> = (0..4)
+                .map(|q| c + DVec3::new(j(40 + q), j(44 + q), j(48 + q)) * size)
+                .collect();
+            let mut b = Aabb::empty();
+            for p in &pts {
+                b.union(&Aabb { min: *p, max: *p });
+            }
+            let holds = pts.iter().any(|p| shell.contains(*p));
+            for sh in [&shell, &sparse] {
+                assert!(!holds || sh.meets(&b), "{b:?}");
+            }
+            assert_eq!(shell.meets(&b), sparse.meets(&b));
+            if shell.meets(&b) {
+                met += 1
+            } else {
+                missed += 1
+            }
+        }
+        // The test is not vacuous: many of these boxes lie away from the cells.
+        assert!(met > 300 && missed > 1000, "{met} {missed}");
+        assert!(!shell.meets(&Aabb::empty()));
+        assert!(!shell.covers(&Aabb::empty()));
+    }
+
+    #[test]
+    fn issue16_a_covered_box_holds_only_points_a_load_keeps() {
+        let group = [DVec3::new(0.3, -1.7, 2.05), DVec3::new(4.0, 4.0, 4.0)];
+        let shell = Shell::around(DVec3::ZERO, bounds(), group.iter().copied(), 0.25, None);
+        let mut covered = 0;
+        for i in 0..5_000u64 {
+            let k = crate::points::sample_key(i);
+            let j = |s: u64| ((k >> s) % 1000) as f64 / 1000.0;
+            let c = group[(i % 2) as usize] + DVec3::new(j(0), j(10), j(20)) * 1.0 - 0.5;
+            let size = j(30) * 0.2;
+            let b = Aabb {
+                min: c,
+                max: c + DVec3::new(j(40), j(44), j(48)) * size,
+            };
+            if !shell.covers(&b) {
+                continue;
+            }
+            covered += 1;
+            for q in 0..27 {
+                let f = DVec3::new((q % 3) as f64, (q / 3 % 3) as f64, (q / 9) as f64) / 2.0;
+                assert!(shell.contains(b.min + (b.max - b.min) * f), "{b:?}");
+            }
+        }
+        assert!(covered > 500, "{covered}");
     }
 
     #[test]
