@@ -595,11 +595,12 @@ const BOUND_VISITS: usize = 1 << 16;
 
 /// Every point of the cloud in `shell`'s cells (from the owned records of the tiles its span
 /// touches), the points of `group` marked owned; `Err(found)` when there are more than the
-/// budget allows one run (`found` of them were seen before the read stopped). The occupancy
-/// grid's cells inside the group's halo cubes, which the shell covers, bound the count from
-/// below: past the budget, the group is refused without reading anything (in the 10 M
-/// cluttered scene at 200 MiB nine loads in ten were refused, after reading 300 000 records
-/// each; BENCHMARKS, issue 16). The bound is the same on every run, so the same loads happen.
+/// budget allows one run (at least `found`: a lower bound, or what a read counted). Two lower
+/// bounds come first, the occupancy grid's cells inside the group's halo cubes (which the shell
+/// covers) and the spill blocks the shell covers (from the block tables alone): past the budget,
+/// the group is refused without reading a record. In the 10 M cluttered scene at 200 MiB nine
+/// loads in ten used to fail, each after reading about 300 000 records (DECISIONS, issue 16).
+/// The bounds come from the plan's files, the same on every run, so the same loads happen.
 fn load_shell(
     dir: &Path,
     plan: &Plan,
@@ -639,10 +640,10 @@ fn load_shell(
 
 /// Every point of the cloud in `span` for which `keep` holds (from the owned records of the
 /// tiles `span` touches, in the blocks `near` passes: see [`read_owned_near`]), the points of
-/// `group` marked owned; `Err(found)` when there are more than `max`. The spill files of each (tile, part) are read side by side on the pool and
-/// appended in (tile, part) order, so the list is the one a serial read gives; a shared count
-/// stops every read once past `max` (`found` is then at least `max + 1`, how far past depends
-/// on the threads).
+/// `group` marked owned; `Err(found)` when there are more than `max`. The spill files of each
+/// (tile, part) are read side by side on the pool and appended in (tile, part) order, so the
+/// list is the one a serial read gives; a shared count stops every read once past `max`
+/// (`found` is then at least `max + 1`, how far past depends on the threads).
 fn load_where(
     dir: &Path,
     plan: &Plan,

@@ -948,12 +948,36 @@ mod tests {
                 )
                 .unwrap();
                 assert_eq!(got[1..], want[..], "{span:?}");
+                // The blocks whose box lies in the span bound what the read keeps from below.
+                let within = |b: &Aabb| (0..3).all(|a| b.min[a] >= lo[a] && b.max[a] <= hi[a]);
+                let bound = owned_within(dir.path(), 0..1, 0, within).unwrap();
+                assert!(
+                    bound <= want.len() as u64,
+                    "{bound} > {} {span:?}",
+                    want.len()
+                );
                 // One sorted run reads a small span's blocks only (under a third of the 30 000
                 // owned records for a span of 1 % of the volume or less).
                 if memory > 1 << 20 && hi.x - lo.x < 5.0 {
                     assert!(seen < n as usize / 4, "read {seen} records for {span:?}");
                 }
             }
+            // A box of half the volume holds no more than its points; with one sorted run (117
+            // Morton-ordered blocks) some blocks whole. With 20 short runs a block spreads over
+            // most of the cube.
+            let (lo, hi) = (DVec3::splat(1.0), DVec3::splat(9.0));
+            let within = |b: &Aabb| (0..3).all(|a| b.min[a] >= lo[a] && b.max[a] <= hi[a]);
+            let bound = owned_within(dir.path(), 0..1, 0, within).unwrap();
+            let inside = whole
+                .iter()
+                .filter(|p| p.owned && (0..3).all(|a| p.p[a] >= lo[a] && p.p[a] <= hi[a]))
+                .count() as u64;
+            assert!(bound <= inside, "{bound} {inside}");
+            assert!(memory < 1 << 20 || bound > 0, "{bound}");
+            // Every owned block accepted: the tile's owned records (the halo block is not one).
+            let owned = whole.iter().filter(|p| p.owned).count() as u64;
+            assert_eq!(owned_within(dir.path(), 0..1, 0, |_| true).unwrap(), owned);
+            assert!(owned > 0);
             // A table that does not describe the file is refused, a missing one too.
             let span = Aabb {
                 min: DVec3::splat(2.0),
