@@ -279,6 +279,10 @@ impl Occupancy {
         visits: usize,
         stop: u64,
     ) -> u64 {
+        // `cell()` stops doubling at level 31 while keys shift on: no bound past it.
+        if self.level > 31 {
+            return 0;
+        }
         let cell = self.cell();
         let mut seen = FxHashSet::default();
         let (mut sum, mut left) = (0u64, visits);
