@@ -238,15 +238,7 @@ impl Shell {
                 hi[a] = hi[a].min(top);
             }
         }
-        if (0..3).any(|a| lo[a] > hi[a]) {
-            return false;
-        }
-        let span = |a: usize| hi[a].saturating_sub(lo[a]).saturating_add(1);
-        if span(0).saturating_mul(span(1)).saturating_mul(span(2)) > MAX_VISITS {
-            return true;
-        }
-        (lo[0]..=hi[0])
-            .any(|x| (lo[1]..=hi[1]).any(|y| (lo[2]..=hi[2]).any(|z| self.has([x, y, z]))))
+        keys_between(lo, hi).is_none_or(|mut keys| keys.any(|k| self.has(k)))
     }
 
     /// True when a load keeps every point in the closed box `b`: the box lies in the span and
@@ -260,12 +252,7 @@ impl Shell {
         if (0..3).any(|a| lo[a] > hi[a]) {
             return false;
         }
-        let span = |a: usize| hi[a].saturating_sub(lo[a]).saturating_add(1);
-        if span(0).saturating_mul(span(1)).saturating_mul(span(2)) > MAX_VISITS {
-            return false;
-        }
-        (lo[0]..=hi[0])
-            .all(|x| (lo[1]..=hi[1]).all(|y| (lo[2]..=hi[2]).all(|z| self.has([x, y, z]))))
+        keys_between(lo, hi).is_some_and(|mut keys| keys.all(|k| self.has(k)))
     }
 
     /// True when every point of the cloud in the ball (`p`, √`r2`) lies in a loaded cell.
@@ -284,17 +271,20 @@ impl Shell {
         // Every loaded point lies in the span as well as in a loaded cell (`contains`); a ball
         // reaching past the span is not proven, whatever its keys (they saturate for a degenerate
         // cell edge).
-        if (0..3).any(|a| lo[a] < self.span.min[a] || hi[a] > self.span.max[a]) {
-            return false;
-        }
-        let (lo, hi) = (self.key(lo), self.key(hi));
-        let span = |a: usize| hi[a].saturating_sub(lo[a]).saturating_add(1);
-        if span(0).saturating_mul(span(1)).saturating_mul(span(2)) > MAX_VISITS {
-            return false;
-        }
-        (lo[0]..=hi[0])
-            .all(|x| (lo[1]..=hi[1]).all(|y| (lo[2]..=hi[2]).all(|z| self.has([x, y, z]))))
+        self.covers(&Aabb { min: lo, max: hi })
     }
+}
+
+/// The cell keys from `lo` to `hi` (inclusive along each axis; none when `lo` exceeds `hi`
+/// along one), or `None` when they are more than [`MAX_VISITS`].
+fn keys_between(lo: [i64; 3], hi: [i64; 3]) -> Option<impl Iterator<Item = [i64; 3]>> {
+    let span = |a: usize| hi[a].saturating_sub(lo[a]).saturating_add(1).max(0);
+    if span(0).saturating_mul(span(1)).saturating_mul(span(2)) > MAX_VISITS {
+        return None;
+    }
+    Some((lo[0]..=hi[0]).flat_map(move |x| {
+        (lo[1]..=hi[1]).flat_map(move |y| (lo[2]..=hi[2]).map(move |z| [x, y, z]))
+    }))
 }
 
 #[cfg(test)]

@@ -984,32 +984,22 @@ mod tests {
                 max: DVec3::splat(3.0),
             };
             let inside = |p: DVec3| (0..3).all(|a| p[a] >= 2.0 && p[a] <= 3.0);
-            let mut out = Vec::new();
+            let read = || {
+                let mut out = Vec::new();
+                read_owned_near(
+                    dir.path(),
+                    0..1,
+                    0,
+                    (&span, |_: &Aabb| true),
+                    inside,
+                    &mut out,
+                )
+            };
             let short = &table[..table.len() - BLOCK_ENTRY];
             std::fs::write(&table_path, short).unwrap();
-            assert!(matches!(
-                read_owned_near(
-                    dir.path(),
-                    0..1,
-                    0,
-                    (&span, |_: &Aabb| true),
-                    inside,
-                    &mut out
-                ),
-                Err(TilingError::Corrupt { .. })
-            ));
+            assert!(matches!(read(), Err(TilingError::Corrupt { .. })));
             std::fs::remove_file(&table_path).unwrap();
-            assert!(matches!(
-                read_owned_near(
-                    dir.path(),
-                    0..1,
-                    0,
-                    (&span, |_: &Aabb| true),
-                    inside,
-                    &mut out
-                ),
-                Err(TilingError::Io { .. })
-            ));
+            assert!(matches!(read(), Err(TilingError::Io { .. })));
         }
     }
 
