@@ -20,6 +20,8 @@ use crate::util::s;
 const BUCKET: &str = "qemd";
 /// The bound on the server's start.
 const START: Duration = Duration::from_secs(90);
+/// A prefix no test writes to: listed until the gateway knows the bucket.
+const PROBE: &str = "s3://qemd/probe-never-written";
 
 /// A running `weed server` with an S3 gateway (killed on drop).
 struct Weed {
@@ -144,6 +146,21 @@ impl Weed {
                 String::from_utf8_lossy(&o.stderr)
             );
             std::thread::sleep(Duration::from_millis(500));
+        }
+        // The S3 gateway learns of a bucket made through the shell a moment later, and
+        // answers a listing of it with 400 until then (seen once in CI): wait until a
+        // listing succeeds, which `qemd status` of an empty prefix reports as "not planned".
+        loop {
+            let o = w.qemd(&w._dir.path().join("probe"), &["status", "--work", PROBE]);
+            if String::from_utf8_lossy(&o.stderr).contains("not a planned work directory") {
+                break;
+            }
+            assert!(
+                t.elapsed() < START,
+                "the bucket never became listable: {}",
+                String::from_utf8_lossy(&o.stderr)
+            );
+            std::thread::sleep(Duration::from_millis(200));
         }
         Some(w)
     }
