@@ -40,6 +40,10 @@ pub struct Report {
     /// alone would hold more than the memory budget.
     #[serde(default)]
     pub cell_runs: u64,
+    /// Kernel runs of growth groups at a narrower halo than their round's, where the round's
+    /// halo would have held more points than the memory budget.
+    #[serde(default)]
+    pub narrower_runs: u64,
     /// Tiles taken from an earlier, interrupted run's checkpoints.
     #[serde(default)]
     pub tiles_resumed: u64,
@@ -112,6 +116,7 @@ impl Report {
             empty_tiles: 0,
             halo_growths: 0,
             cell_runs: 0,
+            narrower_runs: 0,
             tiles_resumed: 0,
             bytes_spilled: 0,
             stats: Stats::default(),

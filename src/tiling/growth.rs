@@ -11,10 +11,12 @@
 //!     pending = one group G
 //!        ▼
 //!     for each G: load every point of the cells within hᵣ of G's points (Shell) from the
-//!                 spill files, side by side (≤ max_points, else G is cut in two at the median
-//!                 of its longest axis; a group of at most LONE_GROUP points that cannot fit is
-//!                 set aside as *lone*; lower bounds from the occupancy grid and the block
-//!                 tables refuse a load that cannot fit before a record is read)
+//!                 spill files, side by side; over max_points, the widest of hᵣ/2, hᵣ/4, …
+//!                 above hᵣ₋₁ that fits (load_widest: its leftovers try the halos above it);
+//!                 none: G is cut in two at the median of its longest axis, and a group of at
+//!                 most LONE_GROUP points is set aside as *lone*; lower bounds from the
+//!                 occupancy grid and the block tables refuse a load that cannot fit before a
+//!                 record is read
 //!                 run the kernel with G owned; exact results are kept, the rest stay pending
 //!     the lone points, together: load only the cells their dependencies reach (by_cells on
 //!                 FineCells; one spill read per round serves them all), halved while over
@@ -72,6 +74,8 @@ pub struct Growth {
     pub groups: u32,
     /// Of those, runs on the cells a point's dependencies reach ([`by_cells`]).
     pub cells: u32,
+    /// Of those, runs of a group at a narrower halo than its round's ([`load_widest`]).
+    pub narrower: u32,
 }
 
 /// A pending owned point: global index and position.
@@ -156,28 +160,33 @@ pub fn with_exact_halo<V: Default>(
         let mut next = Vec::new();
         // Lone points whose cells do not fit, with the points their shell found.
         let mut lonely: Vec<(Pending, u64)> = Vec::new();
-        let mut stack = vec![std::mem::take(&mut pending)];
-        while let Some(mut group) = stack.pop() {
+        // Each group with the halo its descents stay above (see `load_widest`).
+        let mut stack = vec![(std::mem::take(&mut pending), before)];
+        while let Some((mut group, floor)) = stack.pop() {
             check_cancel()?;
-            let points = group.iter().map(|g| g.1);
-            let shell = Shell::around(plan.origin, plan.bounds, points, halo, budget.max_points);
-            let loaded = match load_shell(dir, plan, budget, (&shell, halo), &group)? {
-                Ok(loaded) => loaded,
+            let (shell, loaded, at) = match load_widest(dir, plan, budget, &group, (floor, halo))? {
+                Ok(fit) => fit,
                 Err(found) if group.len() <= LONE_GROUP => {
                     lonely.extend(group.into_iter().map(|g| (g, found)));
                     continue;
                 }
                 Err(_) => {
                     let (a, b) = halves(&mut group, |g| *g);
-                    stack.push(b);
-                    stack.push(a);
+                    stack.push((b, floor));
+                    stack.push((a, floor));
                     continue;
                 }
             };
             growth.groups += 1;
+            growth.narrower += u32::from(at < halo);
             growth.loaded = growth.loaded.max(loaded.len() as u64);
             if loaded.len() < min_points {
-                next.extend(group);
+                if at < halo {
+                    // Too few points at a narrower halo: the group tries the halos above it.
+                    stack.push((group, at));
+                } else {
+                    next.extend(group);
+                }
                 continue;
             }
             let proof = |p: DVec3, r2: f64| shell.complete(p, r2);
@@ -185,15 +194,21 @@ pub fn with_exact_halo<V: Default>(
                 run_kernel(plan, budget, &loaded, Aabb::empty(), Some(&proof), &mut f)?;
             drop(shell);
             merge(&mut value, v);
-            let before = next.len();
-            next.extend(
-                loaded
-                    .iter()
-                    .zip(&exact)
-                    .filter(|(p, e)| p.owned && !**e)
-                    .map(|(p, _)| (p.index, p.p)),
-            );
-            only_few &= next.len() == before;
+            let still: Vec<Pending> = loaded
+                .iter()
+                .zip(&exact)
+                .filter(|(p, e)| p.owned && !**e)
+                .map(|(p, _)| (p.index, p.p))
+                .collect();
+            if at < halo {
+                // Proven at a narrower halo than the round's: the rest try the halos above it.
+                if !still.is_empty() {
+                    stack.push((still, at));
+                }
+            } else {
+                only_few &= still.is_empty();
+                next.extend(still);
+            }
         }
         // The lone points load only the cells their dependencies reach, as many together as
         // fit: one read of the spill files serves them all (each alone read them a dozen times).
@@ -277,8 +292,9 @@ enum ByCells<V> {
 /// Runs `f` on the fine cells ([`FineCells`]) that `group`'s results depend on, for lone points
 /// whose halo holds more points than the budget allows (a sparse point beside a dense cluster):
 /// starting from a small ball around each point (or, with too few points for a list, the ball
-/// through the nearest occupancy cells holding more than k), it computes the k-NN lists of what
-/// is loaded (capped as the kernel caps them), follows them `hops` hops from the group, and adds
+/// through the nearest occupancy cells holding more than k), it computes, among what is loaded,
+/// the k-NN lists of the points within `hops` hops of the group (capped as the kernel caps
+/// them; [`KnnIndex::knn_near`]), follows them `hops` hops from the group, and adds
 /// the cells of every ball there not proven complete, until none is left; then the kernel runs
 /// with the cells as its proof. Which cells are loaded decides only whether the kernel can prove
 /// results exact, never a value. [`ByCells::Unproven`] when the cells cannot prove the needed
@@ -350,7 +366,10 @@ fn by_cells<V>(
         let positions: Vec<DVec3> = pts.iter().map(|p| p.p).collect();
         let ties: Vec<u64> = pts.iter().map(|p| p.index).collect();
         let index = KnnIndex::build_with_ties(&positions, plan.origin, ties).map_err(denoise)?;
-        let (lists, radii) = index.knn_all(k).map_err(denoise)?;
+        // Only the lists the group's dependencies have (`hops` deep): the cells hold far more
+        // points than those, and listing every point was most of this function's cost.
+        let seeds: Vec<bool> = pts.iter().map(|p| p.owned).collect();
+        let (lists, radii, _) = index.knn_near(k, &seeds, hops).map_err(denoise)?;
         let (lists, radii, _) =
             crate::denoise::isolation::cap_lists(lists, radii, plan.isolation, |i, u| {
                 index.dist2(i, u)
@@ -588,6 +607,50 @@ fn load_box(
 ) -> Result<Result<Vec<TilePoint>, u64>, TilingError> {
     let inside = |p: DVec3| (0..3).all(|a| p[a] >= bx.min[a] && p[a] <= bx.max[a]);
     load_where(dir, plan, (bx, |_| true), inside, group, max)
+}
+
+/// A group's shell that fits, its points, and the halo it was built for.
+type Fit = (Shell, Vec<TilePoint>, f64);
+
+/// Most halvings of the round's halo a group that does not fit tries ([`load_widest`]).
+const MAX_DESCENT: usize = 8;
+
+/// The shell of `group` at `halo` and its points, or, when that holds more points than a run
+/// may, at the widest of `halo / 2`, `halo / 4`, … above `floor` whose shell fits (at most
+/// [`MAX_DESCENT`] of them); with the halo it was loaded at. `Err(found)` when none fits, with
+/// what the load at `halo` found.
+///
+/// Why: the second round jumps from twice a narrowed tile's halo to the plan's halo, and beside
+/// a dense cluster the shell at the plan's halo holds more than the budget, while the points'
+/// k-NN balls are far smaller: their results are proven at a halo in between, which the jump
+/// skipped. Without this, such groups were halved down to the lone path ([`by_cells`]), which
+/// took about half the tiles phase of the 10 M cluttered scene at 200 MiB (DECISIONS, issue 16).
+/// A refused halo costs the lower bounds of [`load_shell`], not a read.
+fn load_widest(
+    dir: &Path,
+    plan: &Plan,
+    budget: &TileBudget,
+    group: &[Pending],
+    (floor, halo): (f64, f64),
+) -> Result<Result<Fit, u64>, TilingError> {
+    let mut found = None;
+    let mut h = halo;
+    for _ in 0..=MAX_DESCENT {
+        check_cancel()?;
+        let points = group.iter().map(|g| g.1);
+        let shell = Shell::around(plan.origin, plan.bounds, points, h, budget.max_points);
+        match load_shell(dir, plan, budget, (&shell, h), group)? {
+            Ok(loaded) => return Ok(Ok((shell, loaded, h))),
+            Err(n) => {
+                found.get_or_insert(n);
+            }
+        }
+        h *= 0.5;
+        if h <= floor {
+            break;
+        }
+    }
+    Ok(Err(found.unwrap_or(0)))
 }
 
 /// Cells the occupancy grid's lower bound on a group's points may visit (a few milliseconds).

@@ -141,6 +141,10 @@ pub struct TileOutcome {
     /// alone would hold more than the budget).
     #[serde(default)]
     pub cell_runs: u32,
+    /// Kernel runs of growth groups at a narrower halo than their round's (groups whose shell
+    /// at the round's halo held more than the budget).
+    #[serde(default)]
+    pub narrower_runs: u32,
     /// Bytes of the result file.
     pub result_bytes: u64,
     /// Counters of the owned points and phase timings.
@@ -277,6 +281,7 @@ pub fn process_tile(
         halo: growth.halo,
         halo_growths: growth.rounds,
         cell_runs: growth.cells,
+        narrower_runs: growth.narrower,
         loaded: growth.loaded,
         stats,
         knn_mean,

@@ -153,6 +153,7 @@ pub fn summary(work: &WorkUrl) -> Result<Report, ScaleoutError> {
     let plan = &frozen.plan;
     let mut stats = Stats::default();
     let (mut growths, mut cell_runs, mut empty, mut result_bytes) = (0u64, 0u64, 0u64, 0u64);
+    let mut narrower_runs = 0u64;
     for t in 0..plan.tiles.len() {
         let o = w.committed_tile(t).ok_or_else(|| ScaleoutError::NotReady {
             path: dir.to_path_buf(),
@@ -162,6 +163,7 @@ pub fn summary(work: &WorkUrl) -> Result<Report, ScaleoutError> {
         stats.merge(&o.stats);
         growths += u64::from(o.halo_growths);
         cell_runs += u64::from(o.cell_runs);
+        narrower_runs += u64::from(o.narrower_runs);
         empty += u64::from(o.owned == 0);
         result_bytes += o.result_bytes;
     }
@@ -179,6 +181,7 @@ pub fn summary(work: &WorkUrl) -> Result<Report, ScaleoutError> {
     r.empty_tiles = empty;
     r.halo_growths = growths;
     r.cell_runs = cell_runs;
+    r.narrower_runs = narrower_runs;
     r.bytes_spilled = spill + result_bytes;
     r.stats = stats;
     r.phases = kernel

@@ -84,6 +84,7 @@ pub(crate) fn run(
     r.empty_tiles = tiles.empty;
     r.halo_growths = tiles.halo_growths;
     r.cell_runs = tiles.cell_runs;
+    r.narrower_runs = tiles.narrower_runs;
     r.tiles_resumed = tiles.resumed;
     r.bytes_spilled = partition.bytes + tiles.result_bytes;
     r.stats = tiles.stats;

@@ -26,6 +26,8 @@ pub struct Tiles {
     pub halo_growths: u64,
     /// Kernel runs on the cells of lone points' dependencies.
     pub cell_runs: u64,
+    /// Kernel runs of growth groups at a narrower halo than their round's.
+    pub narrower_runs: u64,
     /// Tiles that owned no point.
     pub empty: u64,
     /// Tiles taken from an earlier run's checkpoints.
@@ -42,6 +44,7 @@ impl Tiles {
         self.knn_mean.1.merge(&o.knn_mean.1);
         self.halo_growths += o.halo_growths as u64;
         self.cell_runs += u64::from(o.cell_runs);
+        self.narrower_runs += u64::from(o.narrower_runs);
         self.empty += (o.owned == 0) as u64;
         self.result_bytes += o.result_bytes;
     }
