@@ -596,8 +596,8 @@ fn plane_and_blob(side: usize, blob: usize, seed: u64) -> Vec<DVec3> {
 /// group was halved down to single points, each reading the spill files (356 CPU-s on a numpy
 /// cloud of the same shape at 40 MiB, 9.7 now); at 64 MiB on a cloud twice the size it was
 /// refused, because the occupancy cells (sized for the isolation radius, here about a third of a
-/// unit) cannot be loaded in part. Groups whose shell at the round's halo holds the blob first
-/// try narrower halos, where their k-NN balls already fit.
+/// unit) cannot be loaded in part. Groups whose shell at the round's halo holds the blob try
+/// narrower halos, where their k-NN balls already fit.
 #[test]
 #[cfg_attr(debug_assertions, ignore = "release only: minutes in the debug binary")]
 fn issue16_points_beside_a_blob_over_the_budget_load_the_cells_they_depend_on() {
@@ -614,8 +614,8 @@ fn issue16_points_beside_a_blob_over_the_budget_load_the_cells_they_depend_on() 
         r["cell_runs"].as_u64().unwrap() > 0,
         "no run on the cells of lone points: the path is not exercised"
     );
-    // Groups whose shell at the round's halo holds the blob run at a narrower halo first
-    // (`load_widest`; measured 11 such runs).
+    // Groups whose shell at the round's halo holds the blob, and whose halves cannot fit
+    // either, run at a narrower halo (`load_widest`).
     assert!(
         r["narrower_runs"].as_u64().unwrap() > 0,
         "no group ran at a narrower halo: the path is not exercised"

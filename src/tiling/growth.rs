@@ -11,10 +11,11 @@
 //!     pending = one group G
 //!        ▼
 //!     for each G: load every point of the cells within hᵣ of G's points (Shell) from the
-//!                 spill files, side by side; over max_points, the widest of hᵣ/2, hᵣ/4, …
-//!                 above hᵣ₋₁ that fits (load_widest: its leftovers try the halos above it);
-//!                 none: G is cut in two at the median of its longest axis, and a group of at
-//!                 most LONE_GROUP points is set aside as *lone*; lower bounds from the
+//!                 spill files, side by side; over max_points, unless a half of G may fit
+//!                 (by the lower bounds), the widest of hᵣ/2, hᵣ/4, … above hᵣ₋₁ that fits
+//!                 (load_widest: its leftovers try the halos above it); else G is cut in two
+//!                 at the median of its longest axis, and a group of at most LONE_GROUP
+//!                 points is set aside as *lone*; lower bounds from the
 //!                 occupancy grid and the block tables refuse a load that cannot fit before a
 //!                 record is read
 //!                 run the kernel with G owned; exact results are kept, the rest stay pending
@@ -616,9 +617,10 @@ type Fit = (Shell, Vec<TilePoint>, f64);
 const MAX_DESCENT: usize = 8;
 
 /// The shell of `group` at `halo` and its points, or, when that holds more points than a run
-/// may, at the widest of `halo / 2`, `halo / 4`, … above `floor` whose shell fits (at most
-/// [`MAX_DESCENT`] of them); with the halo it was loaded at. `Err(found)` when none fits, with
-/// what the load at `halo` found.
+/// may and no half of a group larger than [`LONE_GROUP`] passes the lower bounds at `halo`
+/// ([`a_half_may_fit`]: then it is halved instead), at the widest of `halo / 2`, `halo / 4`, …
+/// above `floor` whose shell fits (at most [`MAX_DESCENT`] of them); with the halo it was loaded
+/// at. `Err(found)` when none fits, with what the load at `halo` found.
 ///
 /// Why: the second round jumps from twice a narrowed tile's halo to the plan's halo, and beside
 /// a dense cluster the shell at the plan's halo holds more than the budget, while the points'
@@ -645,6 +647,11 @@ fn load_widest(
                 found.get_or_insert(n);
             }
         }
+        if h == halo && group.len() > LONE_GROUP && a_half_may_fit(dir, plan, budget, group, halo)?
+        {
+            // Halving may make it fit at the round's halo, which proves more than a narrower one.
+            break;
+        }
         h *= 0.5;
         if h <= floor {
             break;
@@ -653,15 +660,36 @@ fn load_widest(
     Ok(Err(found.unwrap_or(0)))
 }
 
+/// Whether one of the halves `group` would be cut into passes the lower bounds of
+/// [`refusal`] at `halo`.
+fn a_half_may_fit(
+    dir: &Path,
+    plan: &Plan,
+    budget: &TileBudget,
+    group: &[Pending],
+    halo: f64,
+) -> Result<bool, TilingError> {
+    let mut g = group.to_vec();
+    let (a, b) = halves(&mut g, |p| *p);
+    for half in [a, b] {
+        let points = half.iter().map(|g| g.1);
+        let shell = Shell::around(plan.origin, plan.bounds, points, halo, budget.max_points);
+        if refusal(dir, plan, budget, (&shell, halo), &half)?.is_none() {
+            return Ok(true);
+        }
+    }
+    Ok(false)
+}
+
 /// Cells the occupancy grid's lower bound on a group's points may visit (a few milliseconds).
 const BOUND_VISITS: usize = 1 << 16;
 
 /// Every point of the cloud in `shell`'s cells (from the owned records of the tiles its span
 /// touches), the points of `group` marked owned; `Err(found)` when there are more than the
 /// budget allows one run (at least `found`: a lower bound, or what a read counted). Two lower
-/// bounds come first, the occupancy grid's cells inside the group's halo cubes (which the shell
-/// covers) and the spill blocks the shell covers (from the block tables alone): past the budget,
-/// the group is refused without reading a record. In the 10 M cluttered scene at 200 MiB nine
+/// bounds come first ([`refusal`]), the occupancy grid's cells inside the group's halo cubes
+/// (which the shell covers) and the spill blocks the shell covers (from the block tables alone):
+/// past the budget, the group is refused without reading a record. In the 10 M cluttered scene at 200 MiB nine
 /// loads in ten used to fail, each after reading about 300 000 records (DECISIONS, issue 16).
 /// The bounds come from the plan's files, the same on every run, so the same loads happen.
 fn load_shell(
@@ -671,8 +699,34 @@ fn load_shell(
     (shell, halo): (&Shell, f64),
     group: &[Pending],
 ) -> Result<Result<Vec<TilePoint>, u64>, TilingError> {
-    let max = budget.max_points;
-    if let (Some(o), Some(m)) = (budget.occupancy, max) {
+    if let Some(found) = refusal(dir, plan, budget, (shell, halo), group)? {
+        return Ok(Err(found));
+    }
+    let span = shell.span();
+    let near = |b: &Aabb| shell.meets(b);
+    load_where(
+        dir,
+        plan,
+        (&span, near),
+        |p| shell.contains(p),
+        group,
+        budget.max_points,
+    )
+}
+
+/// The lower bound on the points of `shell` (built for `group` at `halo`) that proves it holds
+/// more than the budget allows one run, or `None` when neither bound does (see [`load_shell`]).
+fn refusal(
+    dir: &Path,
+    plan: &Plan,
+    budget: &TileBudget,
+    (shell, halo): (&Shell, f64),
+    group: &[Pending],
+) -> Result<Option<u64>, TilingError> {
+    let Some(m) = budget.max_points else {
+        return Ok(None);
+    };
+    if let Some(o) = budget.occupancy {
         // The cube of half-side `halo` around each group point lies in the shell's cells.
         let inside = o.points_within_cubes(
             group.iter().map(|g| g.1),
@@ -681,24 +735,17 @@ fn load_shell(
             m,
         );
         if inside > m {
-            return Ok(Err(inside));
+            return Ok(Some(inside));
         }
     }
-    if let Some(m) = max {
-        // The spill blocks whose box the shell covers are kept whole by the load.
-        let span = shell.span();
-        let reads = reads_of(plan, &span);
-        let within = reads
-            .par_iter()
-            .map(|&(t, part)| owned_within(dir, part..part + 1, t, |b| shell.covers(b)))
-            .try_reduce(|| 0, |a, b| Ok(a.saturating_add(b)))?;
-        if within > m {
-            return Ok(Err(within));
-        }
-    }
+    // The spill blocks whose box the shell covers are kept whole by the load.
     let span = shell.span();
-    let near = |b: &Aabb| shell.meets(b);
-    load_where(dir, plan, (&span, near), |p| shell.contains(p), group, max)
+    let reads = reads_of(plan, &span);
+    let within = reads
+        .par_iter()
+        .map(|&(t, part)| owned_within(dir, part..part + 1, t, |b| shell.covers(b)))
+        .try_reduce(|| 0, |a, b| Ok(a.saturating_add(b)))?;
+    Ok((within > m).then_some(within))
 }
 
 /// Every point of the cloud in `span` for which `keep` holds (from the owned records of the
