@@ -128,6 +128,9 @@ impl Jobs {
         deadline.disarm();
         let _ = self.lock_running().remove(&id);
         let dismissed = running.dismissed.load(Ordering::SeqCst);
+        // A failed job's files are removed before its status says so: a client that sees
+        // `failed` finds nothing of it left (the issue-15 test saw the directory once, in the
+        // moment between the two).
         match outcome {
             _ if dismissed => {
                 info!("stopped: dismissed");
@@ -135,17 +138,17 @@ impl Jobs {
             }
             Err(panicked) => {
                 error!(error = %panicked, "the run panicked");
+                self.remove_job_files(&id).await;
                 self.finish_failed(&id, "internal error: the run panicked")
                     .await;
-                self.remove_job_files(&id).await;
             }
             Ok(Ok(report)) => self.finish_success(&id, report, &dir, &output).await,
             Ok(Err(PipelineError::Cancelled)) if deadline.expired() => {
                 // Over its limit: failed for good (a restart does not give it another run).
                 let msg = deadline.error().to_string();
                 info!(error = %msg, "failed");
-                self.finish_failed(&id, &msg).await;
                 self.remove_job_files(&id).await;
+                self.finish_failed(&id, &msg).await;
             }
             Ok(Err(PipelineError::Cancelled)) if self.shutting_down() => {
                 // Back in the queue of the next start; the finished tiles stay as checkpoints.
@@ -162,8 +165,8 @@ impl Jobs {
                 } else {
                     error!(error = %e, "failed");
                 }
-                self.finish_failed(&id, &msg).await;
                 self.remove_job_files(&id).await;
+                self.finish_failed(&id, &msg).await;
             }
         }
         running.done.send_replace(true);
@@ -241,9 +244,9 @@ impl Jobs {
             Ok(x) => x,
             Err(e) => {
                 error!(error = %e, "cannot hash the result");
+                self.remove_job_files(id).await;
                 self.finish_failed(id, "internal error while storing the result")
                     .await;
-                self.remove_job_files(id).await;
                 return;
             }
         };
