@@ -689,9 +689,10 @@ const BOUND_VISITS: usize = 1 << 16;
 /// budget allows one run (at least `found`: a lower bound, or what a read counted). Two lower
 /// bounds come first ([`refusal`]), the occupancy grid's cells inside the group's halo cubes
 /// (which the shell covers) and the spill blocks the shell covers (from the block tables alone):
-/// past the budget, the group is refused without reading a record. In the 10 M cluttered scene at 200 MiB nine
-/// loads in ten used to fail, each after reading about 300 000 records (DECISIONS, issue 16).
-/// The bounds come from the plan's files, the same on every run, so the same loads happen.
+/// past the budget, the group is refused without reading a record. In the 10 M cluttered scene
+/// at 200 MiB nine loads in ten used to fail, each after reading about 300 000 records
+/// (DECISIONS, issue 16). The bounds come from the plan's files, the same on every run, so the
+/// same loads happen.
 fn load_shell(
     dir: &Path,
     plan: &Plan,
