@@ -124,11 +124,7 @@ pub fn with_exact_halo<V: Default>(
     } else if pts.iter().any(|p| p.owned) {
         let (v, exact) = run_kernel(plan, budget, &pts, plan.first_region(t), None, &mut f)?;
         merge(&mut value, v);
-        pts.iter()
-            .zip(&exact)
-            .filter(|(p, e)| p.owned && !**e)
-            .map(|(p, _)| (p.index, p.p))
-            .collect()
+        pending_of(&pts, &exact)
     } else {
         Vec::new()
     };
@@ -195,12 +191,7 @@ pub fn with_exact_halo<V: Default>(
                 run_kernel(plan, budget, &loaded, Aabb::empty(), Some(&proof), &mut f)?;
             drop(shell);
             merge(&mut value, v);
-            let still: Vec<Pending> = loaded
-                .iter()
-                .zip(&exact)
-                .filter(|(p, e)| p.owned && !**e)
-                .map(|(p, _)| (p.index, p.p))
-                .collect();
+            let still = pending_of(&loaded, &exact);
             if at < halo {
                 // Proven at a narrower halo than the round's: the rest try the halos above it.
                 if !still.is_empty() {
@@ -415,12 +406,7 @@ fn by_cells<V>(
         drop((lists, radii, loaded));
         let proof = |p: DVec3, r2: f64| cells.complete(p, r2);
         let (v, exact) = run_kernel(plan, budget, &pts, Aabb::empty(), Some(&proof), f)?;
-        let still = pts
-            .iter()
-            .zip(&exact)
-            .filter(|(p, e)| p.owned && !**e)
-            .map(|(p, _)| (p.index, p.p))
-            .collect();
+        let still = pending_of(&pts, &exact);
         return Ok(ByCells::Ran(v, still, pts.len() as u64));
     }
     Ok(ByCells::Unproven)
@@ -479,6 +465,16 @@ fn run_kernel<V>(
         held: held.iter().any(|&h| h).then_some(held.as_slice()),
     };
     f(pts, &run)
+}
+
+/// The owned points of a kernel run whose results it did not prove exact (`exact[i]` for
+/// `pts[i]`).
+fn pending_of(pts: &[TilePoint], exact: &[bool]) -> Vec<Pending> {
+    pts.iter()
+        .zip(exact)
+        .filter(|(p, e)| p.owned && !**e)
+        .map(|(p, _)| (p.index, p.p))
+        .collect()
 }
 
 /// The bounding box of `group`'s points grown by `halo` (closed: every point of the cloud inside
@@ -568,12 +564,7 @@ fn lone_box<V: Default>(
                 let (v, still) = if loaded.len() >= min_points {
                     let (v, exact) =
                         run_kernel(plan, budget, &loaded, plan.region_of(&bx), None, f)?;
-                    let still: Vec<Pending> = loaded
-                        .iter()
-                        .zip(&exact)
-                        .filter(|(p, e)| p.owned && !**e)
-                        .map(|(p, _)| (p.index, p.p))
-                        .collect();
+                    let still = pending_of(&loaded, &exact);
                     (v, still)
                 } else {
                     (V::default(), group.to_vec())
