@@ -35,12 +35,12 @@
 use glam::DVec3;
 use rayon::prelude::*;
 
-use super::common::{merge_step, stay};
+use super::common::{Within, merge_step, stay};
 use super::frame::Frame;
 use super::guarded::{self, Guard};
-use super::normals::{filter_point_normals, pca_normals};
+use super::normals::{filter_point_normals, filter_point_normals_within, pca_normals};
 use super::qem::is_duplicate;
-use super::structure::{Structure, classify, local_fits, noise_scale};
+use super::structure::{Structure, classify_within, local_fits_within, noise_scale_within};
 use super::written::of_cycle;
 use super::{DenoiseError, Method, Params, Stats, StructureCounts, Timer, bilateral, qem};
 use crate::geometry::ExactSum;
@@ -417,6 +417,36 @@ fn update_reach(depth: &[u8], updates: usize, u: usize) -> Vec<bool> {
     depth.iter().map(|&d| (d as usize) <= reach).collect()
 }
 
+/// How many hops from the wanted points each pass of a guarded cycle is needed (see
+/// [`graded`]).
+struct Graded {
+    /// What the updates read of a point and its list members: the noise scales and the filtered
+    /// normals.
+    guard: usize,
+    /// The classes (and so the planes the normal filter starts from).
+    classes: usize,
+    /// The local fits.
+    fits: usize,
+}
+
+/// The passes of a guarded cycle graded by hops from the wanted points (the points whose
+/// updates' results are kept). Update `u` of `U` moves the points within `U − 1 − u` hops (one
+/// more for the first, whose offsets give the gains, [`update_reach`]), so the farthest update
+/// reads a point `U` hops out and its list members, `U + 1` hops out: that is where the noise
+/// scales and the filtered normals are needed. Each of the `F` filter iterations reads its input
+/// one hop further, so the planes it starts from (the fits' normals where the class takes
+/// planes) are needed `U + 1 + F` hops out; a class reads its list members' fits, one hop more.
+/// Farther out a pass gives a placeholder that no kept result reads.
+fn graded(sched: &super::Schedule) -> Graded {
+    let guard = sched.updates + 1;
+    let classes = guard + sched.filter;
+    Graded {
+        guard,
+        classes,
+        fits: classes + 1,
+    }
+}
+
 /// True where the k-NN ball of a point lies strictly inside `region` (so its list is complete).
 fn inside(region: &Aabb, p: DVec3, r2: f64) -> bool {
     let lo = p - region.min;
@@ -545,10 +575,10 @@ fn run_on(
     check_cancel()?;
 
     let sched = params.schedule(false);
-    // Hops from the wanted points (frame order), up to the last cycle's updates' reach.
+    // Hops from the wanted points (frame order), up to the last cycle's reach (`graded`).
     let depth: Option<Vec<u8>> = run.wanted.filter(|_| guard).map(|w| {
         let seeds: Vec<bool> = frame.order.iter().map(|&i| w[i as usize]).collect();
-        hop_depths(&lists, &seeds, sched.updates)
+        hop_depths(&lists, &seeds, graded(&sched).fits)
     });
     let mut cur = frame.positions.clone();
     let mut stayed = vec![0u8; n];
@@ -572,12 +602,19 @@ fn run_on(
     };
     for pass in 0..sched.cycles {
         if guard {
-            let mut fits = local_fits(&cur, &lists);
+            // The last cycle's passes only as far as a wanted result reads them.
+            let last = pass + 1 == sched.cycles;
+            let near = graded(&sched);
+            let within = |most| match (&depth, last) {
+                (Some(d), true) => Within::Hops(d, most),
+                _ => Within::All,
+            };
+            let mut fits = local_fits_within(&cur, &lists, within(near.fits));
             for (f, _) in fits.iter_mut().zip(&isolated).filter(|(_, i)| **i) {
                 *f = super::structure::LocalFit::isolated();
             }
-            let classes = classify(&fits, &lists, &radii);
-            let noise = noise_scale(&fits, &lists);
+            let classes = classify_within(&fits, &lists, &radii, within(near.classes));
+            let noise = noise_scale_within(&fits, &lists, within(near.guard));
             let bound: Vec<f64> = noise
                 .iter()
                 .map(|&s| s.min(guarded::GLOBAL * globals.noise))
@@ -599,15 +636,15 @@ fn run_on(
                     }
                 })
                 .collect();
-            let normals = filter_point_normals(
+            let normals = filter_point_normals_within(
                 &cur,
                 &lists,
                 &radii,
                 &planes,
-                params.sigma_r_floor(false),
-                sched.filter,
+                (params.sigma_r_floor(false), sched.filter),
+                within(near.guard),
             );
-            if params.write_normals && pass + 1 == sched.cycles {
+            if params.write_normals && last {
                 let fc = Some((fits.as_slice(), classes.as_slice()));
                 written = Some(of_cycle(&cur, &lists, &radii, &isolated, &normals, fc));
             }
@@ -623,7 +660,6 @@ fn run_on(
                 max_move: params.max_move,
             };
             let mut gain = None;
-            let last = pass + 1 == sched.cycles;
             for u in 0..sched.updates {
                 // The last cycle's updates only where a wanted result depends on them.
                 let active = match (&depth, last) {
@@ -978,6 +1014,70 @@ mod tests {
         );
         for i in (0..pts.len()).filter(|&i| part.exact[i]) {
             assert_eq!(part.positions[i], all.positions[i], "point {i}");
+        }
+    }
+
+    /// A wanted block's results equal the whole run's, bit for bit, though the fits, classes,
+    /// noise scales and filter iterations of its run stop where no wanted result reads them
+    /// ([`graded`]): a wavy surface with a crease and noise, so every class and the noise bound
+    /// are at work; a small block (lists round by round) and a large one (all lists, then
+    /// [`keep_near`]).
+    #[test]
+    fn issue16_graded_passes_give_the_wanted_points_the_whole_runs_bits() {
+        let mut pts = Vec::new();
+        for i in 0..80 {
+            for j in 0..80 {
+                let h = ((i * 7919 + j * 104_729) % 1000) as f64 / 1000.0 - 0.5;
+                let crease = 0.6 * (i as f64 - 40.0).max(0.0);
+                let wave = 2.0 * (0.2 * i as f64).sin() * (0.15 * j as f64).cos();
+                pts.push(DVec3::new(i as f64, j as f64, wave + crease + 0.3 * h));
+            }
+        }
+        // Scatter above the surface (vegetation): scatter and edge classes.
+        for i in 0..400 {
+            let h = |m: usize| ((i * m) % 1000) as f64 / 1000.0;
+            pts.push(DVec3::new(
+                80.0 * h(7919),
+                80.0 * h(104_729),
+                1.0 + 2.0 * h(1_299_709),
+            ));
+        }
+        let ties: Vec<u64> = (0..pts.len() as u64).map(|i| 5 * i + 2).collect();
+        let bb = Aabb::from_points(&pts);
+        let whole = CloudRun {
+            region: Some(Aabb {
+                min: bb.min - DVec3::splat(bb.diagonal()),
+                max: bb.max + DVec3::splat(bb.diagonal()),
+            }),
+            ..whole_run(&pts, &ties)
+        };
+        let params = Params::default();
+        let n = pts.len() as u64;
+        let globals = globals_partial(&whole, &params, n, |_, e| e)
+            .unwrap()
+            .0
+            .finish();
+        assert!(globals.noise > 0.0);
+        let all = run(&whole, &params, &globals).unwrap();
+        for (lo, hi) in [(30, 46), (15, 65)] {
+            let wanted: Vec<bool> = (0..pts.len())
+                .map(|i| i < 6400 && (lo..hi).contains(&(i / 80)) && (lo..hi).contains(&(i % 80)))
+                .collect();
+            let part = CloudRun {
+                wanted: Some(&wanted),
+                ..whole
+            };
+            let part = run(&part, &params, &globals).unwrap();
+            let mut moved = 0;
+            for i in (0..pts.len()).filter(|&i| wanted[i]) {
+                assert!(part.exact[i], "block {lo}..{hi}: point {i} not exact");
+                assert_eq!(
+                    part.positions[i], all.positions[i],
+                    "block {lo}..{hi}: point {i}"
+                );
+                moved += usize::from(part.positions[i] != pts[i]);
+            }
+            assert!(moved > 0, "block {lo}..{hi}: nothing moved");
         }
     }
 

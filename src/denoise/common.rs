@@ -1,7 +1,7 @@
 //! Pieces the mesh and point operators share: why a point stayed put ([`stay`]), merging a
 //! pass's results ([`merge_step`]), the faces around each vertex ([`FaceTopology`]), the mean
-//! edge length of a mesh ([`mean_edge_length`]) and the median of a k-NN list's values
-//! ([`median`]). `qem`, `filtered`, `bilateral`, `guarded` and
+//! edge length of a mesh ([`mean_edge_length`]), the median of a k-NN list's values
+//! ([`median`]) and which points a pass computes ([`Within`]). `qem`, `filtered`, `bilateral`, `guarded` and
 //! `cloud` use them; nothing here uses those files.
 
 use glam::DVec3;
@@ -27,6 +27,40 @@ pub mod stay {
     /// Not of a class `--classes` names: the point keeps its input position and still serves as
     /// a neighbour.
     pub const HELD: u8 = 16;
+}
+
+/// Which points a per-point pass computes: all of them, or (a tile's run, where only the wanted
+/// points' results are kept) those within some hops of a wanted point. A pass whose result a
+/// wanted point reads through `h` more hops is computed where the hop count is at most `h`; the
+/// others get a placeholder that nothing wanted reads (docs/DECISIONS.md, "A tile computes only
+/// what its owned results depend on").
+#[derive(Debug, Clone, Copy)]
+pub enum Within<'a> {
+    /// Every point.
+    All,
+    /// The points whose hop count from a wanted point (`u8::MAX`: farther than counted) is at
+    /// most the second value.
+    Hops(&'a [u8], usize),
+}
+
+impl Within<'_> {
+    /// True when point `i` is computed.
+    #[inline]
+    pub fn has(&self, i: usize) -> bool {
+        match self {
+            Within::All => true,
+            Within::Hops(depth, most) => (depth[i] as usize) <= *most,
+        }
+    }
+
+    /// The points within `by` hops more: what a pass must compute for one that reads its list
+    /// members' results to be computed here.
+    pub fn wider(self, by: usize) -> Self {
+        match self {
+            Within::All => Within::All,
+            Within::Hops(depth, most) => Within::Hops(depth, most + by),
+        }
+    }
 }
 
 /// Splits a pass's results into positions, or-ing its [`stay`] flags into `stayed`.

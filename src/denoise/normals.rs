@@ -4,7 +4,7 @@ use glam::DVec3;
 use rayon::prelude::*;
 
 use super::NormalWeighting;
-use super::common::median;
+use super::common::{Within, median};
 use crate::geometry::pca_normal;
 use crate::neighbours::Neighbourhoods;
 use crate::points::Faces;
@@ -109,9 +109,32 @@ pub fn filter_point_normals(
     sigma_r_floor: f64,
     iterations: usize,
 ) -> Vec<DVec3> {
+    filter_point_normals_within(
+        pos,
+        lists,
+        radii,
+        normals,
+        (sigma_r_floor, iterations),
+        Within::All,
+    )
+}
+
+/// [`filter_point_normals`] where the output is read only at the points `within` selects: each
+/// iteration reads the previous one's normals of the list members, so iteration `t` of `T`
+/// (from 0) is computed `T − 1 − t` hops wider, and the weights as wide as the first. Elsewhere
+/// a point keeps its input normal, which nothing that reads the selected points sees.
+pub fn filter_point_normals_within(
+    pos: &[DVec3],
+    lists: &Neighbourhoods,
+    radii: &[f64],
+    normals: &[DVec3],
+    (sigma_r_floor, iterations): (f64, usize),
+    within: Within,
+) -> Vec<DVec3> {
     if iterations == 0 {
         return normals.to_vec();
     }
+    let widest = within.wider(iterations - 1);
     // Positions are fixed while the normals are filtered: the spatial weights (one per list
     // entry) and the range width of each point (the median normal difference over its list in
     // the input normals, at least `sigma_r_floor`) are computed once, in one pass. A point
@@ -129,7 +152,7 @@ pub fn filter_point_normals(
                 let w = &mut ws[at..at + list.len()];
                 at += list.len();
                 let ni = normals[i];
-                if ni == DVec3::ZERO {
+                if ni == DVec3::ZERO || !widest.has(i) {
                     continue;
                 }
                 let ss2 = 2.0 * radii[i].max(f64::MIN_POSITIVE);
@@ -148,13 +171,14 @@ pub fn filter_point_normals(
     // Two buffers, swapped between iterations (each reads the previous one only).
     let mut n = normals.to_vec();
     let mut next = vec![DVec3::ZERO; n.len()];
-    for _ in 0..iterations {
+    for t in 0..iterations {
+        let here = within.wider(iterations - 1 - t);
         next.par_iter_mut()
             .enumerate()
             .with_min_len(1024)
             .for_each(|(i, out)| {
                 let ni = n[i];
-                if ni == DVec3::ZERO {
+                if ni == DVec3::ZERO || !here.has(i) {
                     *out = ni;
                     return;
                 }

@@ -33,7 +33,7 @@
 use glam::DVec3;
 use rayon::prelude::*;
 
-use super::common::median;
+use super::common::{Within, median};
 use crate::geometry::{PcaFit, pca_fit};
 use crate::neighbours::Neighbourhoods;
 
@@ -179,12 +179,17 @@ fn fit_of(f: Option<PcaFit>) -> LocalFit {
 
 /// The own fit of every point over its list (coordinates relative to the point).
 pub fn local_fits(pos: &[DVec3], lists: &Neighbourhoods) -> Vec<LocalFit> {
+    local_fits_within(pos, lists, Within::All)
+}
+
+/// [`local_fits`] of the points `within` selects; the others get the degenerate fit.
+pub fn local_fits_within(pos: &[DVec3], lists: &Neighbourhoods, within: Within) -> Vec<LocalFit> {
     (0..pos.len())
         .into_par_iter()
         .with_min_len(1024)
         .map(|i| {
             let v = pos[i];
-            if !v.is_finite() {
+            if !v.is_finite() || !within.has(i) {
                 return fit_of(None);
             }
             fit_of(pca_fit(lists.get(i).iter().map(|&u| pos[u as usize] - v)))
@@ -196,13 +201,24 @@ pub fn local_fits(pos: &[DVec3], lists: &Neighbourhoods) -> Vec<LocalFit> {
 /// least [`SPARSE`] times the median of their list members', [`Structure::Edge`] for non-surface
 /// points whose list is mostly surface, the own class otherwise.
 pub fn classify(fits: &[LocalFit], lists: &Neighbourhoods, radii: &[f64]) -> Vec<Structure> {
+    classify_within(fits, lists, radii, Within::All)
+}
+
+/// [`classify`] of the points `within` selects; the others are [`Structure::Degenerate`]. Reads
+/// the fits of the selected points' list members.
+pub fn classify_within(
+    fits: &[LocalFit],
+    lists: &Neighbourhoods,
+    radii: &[f64],
+    within: Within,
+) -> Vec<Structure> {
     (0..fits.len())
         .into_par_iter()
         .with_min_len(1024)
         .map_init(Vec::new, |buf: &mut Vec<f64>, i| {
             let own = fits[i].own;
-            if own == Structure::Degenerate {
-                return own;
+            if own == Structure::Degenerate || !within.has(i) {
+                return Structure::Degenerate;
             }
             let list = lists.get(i);
             buf.clear();
@@ -235,10 +251,19 @@ pub fn classify(fits: &[LocalFit], lists: &Neighbourhoods, radii: &[f64]) -> Vec
 /// The noise scale of every point: the median residual of the Surface and Line members of its
 /// list (the point itself included); 0 when it has none (such a point does not move).
 pub fn noise_scale(fits: &[LocalFit], lists: &Neighbourhoods) -> Vec<f64> {
+    noise_scale_within(fits, lists, Within::All)
+}
+
+/// [`noise_scale`] of the points `within` selects; the others get 0. Reads the fits of the
+/// selected points' list members.
+pub fn noise_scale_within(fits: &[LocalFit], lists: &Neighbourhoods, within: Within) -> Vec<f64> {
     (0..fits.len())
         .into_par_iter()
         .with_min_len(1024)
         .map_init(Vec::new, |buf: &mut Vec<f64>, i| {
+            if !within.has(i) {
+                return 0.0;
+            }
             buf.clear();
             buf.extend(
                 lists
