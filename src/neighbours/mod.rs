@@ -287,26 +287,40 @@ impl KnnIndex {
             out.extend(cand.iter().map(|c| c.1));
             return (cand.last().map_or(0.0, |c| grid::rank_distance(c.0)), seen);
         }
+        // One more than wanted: when that one lies beyond the inflated radius, every point the
+        // radius query below would return is already here, and the second search is skipped
+        // (most queries; the candidates are re-ranked by this crate's distance either way).
         let proposal = self
             .tree()
             .query(&q)
-            .nearest_n::<SquaredEuclidean<f64>>(NonZeroUsize::new(want).expect("want ≥ 1"))
+            .nearest_n::<SquaredEuclidean<f64>>(NonZeroUsize::new(want + 1).expect("want ≥ 1"))
             .execute();
-        let r = proposal.last().map_or(0.0, |c| c.distance);
-        let mut cand: Vec<(u128, u32)> = self
-            .tree()
-            .query(&q)
-            .within::<SquaredEuclidean<f64>>(inflate(r))
-            .unsorted()
-            .execute()
+        let r = proposal.get(want - 1).map_or(0.0, |c| c.distance);
+        let items: Vec<u32> = match proposal.get(want) {
+            Some(next) if next.distance <= inflate(r) => self
+                .tree()
+                .query(&q)
+                .within::<SquaredEuclidean<f64>>(inflate(r))
+                .unsorted()
+                .execute()
+                .into_iter()
+                .map(|c| c.item)
+                .collect(),
+            _ => proposal
+                .iter()
+                .filter(|c| c.distance <= inflate(r))
+                .map(|c| c.item)
+                .collect(),
+        };
+        let mut cand: Vec<(u128, u32)> = items
             .into_iter()
-            .map(|c| {
+            .map(|item| {
                 (
                     grid::rank(
-                        grid::dist2(q, self.local[c.item as usize]),
-                        self.tie(c.item as usize),
+                        grid::dist2(q, self.local[item as usize]),
+                        self.tie(item as usize),
                     ),
-                    c.item,
+                    item,
                 )
             })
             .collect();
@@ -706,6 +720,29 @@ mod tests {
                 for i in 0..n {
                     let want = brute::knn_with_ties(&pts, &ties, pts[i], k.min(n));
                     prop_assert_eq!(nb.get(i), &want[..], "point {}", i);
+                }
+            }
+        }
+    }
+
+    proptest! {
+        /// The k-d tree path (what the grid leaves to it) ranks exactly as the oracle does, at
+        /// lattice points (ties at the k-th distance: its second search) and between them
+        /// (mostly none: its first search alone).
+        #[test]
+        fn tree_knn_with_ties_matches_brute_force(seed in 0u64..10_000, n in 20usize..300,
+                                                  k in 1usize..20) {
+            let pts = cloud(seed, n, true);
+            let ties: Vec<u64> = (0..n as u64).map(|i| (i * 7919 + 17) % 100_003).collect();
+            let index = KnnIndex::build_with_ties(&pts, DVec3::ZERO, ties.clone()).unwrap();
+            let k = k.min(n);
+            let mut out = Vec::new();
+            for (i, &p) in pts.iter().enumerate().step_by(5) {
+                for q in [p, p + DVec3::new(0.31, 0.17, 0.05) * (i % 3) as f64] {
+                    out.clear();
+                    index.knn_at(q.to_array(), k, &mut out);
+                    let want = brute::knn_with_ties(&pts, &ties, q, k);
+                    prop_assert_eq!(&out, &want, "query {:?}", q);
                 }
             }
         }
