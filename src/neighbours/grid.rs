@@ -85,7 +85,7 @@ pub struct Work {
     pub candidates: u64,
     /// Cell look-ups of the grid levels (block gathering and load estimates).
     pub cells: u64,
-    /// Queries the k-d tree answered.
+    /// Queries the grid left to the k-d tree (a few of them to a scan, [`super::SCAN_QUERIES`]).
     pub tree_queries: u64,
     /// Candidates the k-d tree returned for re-measuring.
     pub tree_candidates: u64,

@@ -618,19 +618,30 @@ fn split(
         });
         return at;
     }
-    idx.sort_unstable_by(|&a, &b| pts[a][axis].total_cmp(&pts[b][axis]).then(a.cmp(&b)));
     // Split where the left side holds a whole number of full target-sized tiles and the right
     // side the rest: every tile but the last one holds the target, whatever the cloud's size, so
     // the memory a tile needs (the peak RSS) does not depend on the size of the cloud.
     let count = ((estimate - slack) / target).ceil().max(2.0);
     let left = (count / 2.0).floor();
     let mid = ((left * target / weight).round() as usize).clamp(1, idx.len() - 1);
+    // The mid-th point along the axis (ties by index: a total order, so the same point a full
+    // sort puts there), found by selection; the order of `idx` decides nothing below.
+    idx.select_nth_unstable_by(mid, |&a, &b| {
+        pts[a][axis].total_cmp(&pts[b][axis]).then(a.cmp(&b))
+    });
     let mut value = pts[idx[mid]][axis];
     if value <= bx.min[axis] || value >= bx.max[axis] {
         // Degenerate median (many equal coordinates): split the box in half instead.
         value = 0.5 * (bx.min[axis] + bx.max[axis]);
     }
-    let cut = idx.partition_point(|&i| pts[i][axis] < value);
+    // The points below the cut first.
+    let mut cut = 0;
+    for j in 0..idx.len() {
+        if pts[idx[j]][axis] < value {
+            idx.swap(cut, j);
+            cut += 1;
+        }
+    }
     nodes.push(Node::Leaf { tile: usize::MAX });
     let (lo, hi) = idx.split_at_mut(cut);
     let mut lbox = bx;
