@@ -404,7 +404,8 @@ impl KnnIndex {
     }
 
     /// The level-0 grid cell size for [`KnnIndex::knn_all`]: 1.5 × the median k-th neighbour
-    /// distance, estimated on an evenly strided subsample of at most 16 384 points (for a stride
+    /// distance of [`CELL_PROBES`] points, estimated on an evenly strided subsample of about
+    /// [`CELL_SAMPLE`] points (for a stride
     /// `s`, a ball holding k − 1 neighbours holds about (k − 1)/s sample points; below 5, radii
     /// are scaled as on a surface, ∝ √count); 0 when it cannot be estimated (the grid then
     /// chooses). Only speed depends on it: the grid pass is exact for any cell size, and refines
@@ -416,14 +417,14 @@ impl KnnIndex {
 
     /// [`KnnIndex::cell_size`], computed.
     fn estimate_cell(&self, k: usize) -> f64 {
-        let finite: Vec<DVec3> = self
+        let stride = (self.indexed / CELL_SAMPLE).max(1);
+        let sample: Vec<DVec3> = self
             .local
             .iter()
             .filter(|p| indexable(**p))
+            .step_by(stride)
             .map(|&p| DVec3::from_array(p))
             .collect();
-        let stride = (finite.len() / 16_384).max(1);
-        let sample: Vec<DVec3> = finite.iter().step_by(stride).copied().collect();
         // Lists include the point itself, so a list of k holds k − 1 neighbours.
         let ks = ((k - 1) as f64 / stride as f64).round().max(5.0) as usize + 1;
         let scale = ((k - 1) as f64 / ((ks - 1) * stride) as f64).sqrt();
@@ -433,7 +434,7 @@ impl KnnIndex {
         let Ok(sub) = KnnIndex::build(&sample, DVec3::ZERO) else {
             return 0.0;
         };
-        let step = (sample.len() / 1024).max(1);
+        let step = (sample.len() / CELL_PROBES).max(1);
         let mut radii: Vec<f64> = (0..sample.len())
             .step_by(step)
             .map(|i| {
@@ -616,6 +617,17 @@ impl KnnIndex {
         Ok((Neighbourhoods { offsets, indices }, radii, work))
     }
 }
+
+/// Points of the subsample [`KnnIndex::cell_size`] estimates the grid's cell from (at most about
+/// this many), and of its points whose k-th neighbour distance it measures. Only speed depends
+/// on them. The estimate builds a k-d tree over the subsample once per index, and a tiled run
+/// on a real scan under a small budget builds hundreds of indexes (halo growth): at 16 384 and
+/// 1024 the estimates were 9 % of `lone-star.copc.laz`'s CPU at 32 MiB (perf), and 4096 and
+/// 256 made that run 14 % faster with the same bytes and no slower k-NN in memory
+/// (BENCHMARKS "Issue 16 — graded passes, …").
+const CELL_SAMPLE: usize = 4096;
+/// See [`CELL_SAMPLE`].
+const CELL_PROBES: usize = 256;
 
 /// Fallback queries of a grid pass answered by [`KnnIndex::knn_scan`] instead of the k-d tree,
 /// when the tree is not built yet: building it costs about 480 instructions a point (callgrind,
