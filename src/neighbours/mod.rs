@@ -274,18 +274,8 @@ impl KnnIndex {
         }
         let want = k.min(self.indexed);
         if !indexable(q) {
-            let mut cand: Vec<(u128, u32)> = (0..self.local.len())
-                .filter(|&i| indexable(self.local[i]))
-                .map(|i| {
-                    let d = grid::dist2(q, self.local[i]);
-                    (grid::rank(d, self.tie(i)), i as u32)
-                })
-                .collect();
-            let seen = cand.len();
-            cand.sort_unstable();
-            cand.truncate(want);
-            out.extend(cand.iter().map(|c| c.1));
-            return (cand.last().map_or(0.0, |c| grid::rank_distance(c.0)), seen);
+            // Beyond the tree's reach: a scan ranks every point the same way.
+            return self.knn_scan(q, k, out);
         }
         // One more than wanted: when that one lies beyond the inflated radius, every point the
         // radius query below would return is already here, and the second search is skipped
@@ -297,15 +287,7 @@ impl KnnIndex {
             .execute();
         let r = proposal.get(want - 1).map_or(0.0, |c| c.distance);
         let items: Vec<u32> = match proposal.get(want) {
-            Some(next) if next.distance <= inflate(r) => self
-                .tree()
-                .query(&q)
-                .within::<SquaredEuclidean<f64>>(inflate(r))
-                .unsorted()
-                .execute()
-                .into_iter()
-                .map(|c| c.item)
-                .collect(),
+            Some(next) if next.distance <= inflate(r) => self.tree_within(q, inflate(r)).collect(),
             _ => proposal
                 .iter()
                 .filter(|c| c.distance <= inflate(r))
@@ -331,10 +313,10 @@ impl KnnIndex {
         (cand.last().map_or(0.0, |c| grid::rank_distance(c.0)), seen)
     }
 
-    /// [`KnnIndex::knn_at_counted`] for an indexable `q` by one pass over every indexed point,
+    /// [`KnnIndex::knn_at_counted`] for a finite `q` by one pass over every indexed point,
     /// keeping the `k` best ranks (squared distance, tie key) seen: the same list and radius,
     /// without the k-d tree. What the grid passes use for their few fallback queries
-    /// ([`SCAN_QUERIES`]).
+    /// ([`SCAN_QUERIES`]), and the answer for a query beyond the tree's reach.
     fn knn_scan(&self, q: [f64; 3], k: usize, out: &mut Vec<u32>) -> (f64, usize) {
         let want = k.min(self.indexed);
         if want == 0 {
@@ -367,6 +349,18 @@ impl KnnIndex {
         (best.last().map_or(0.0, |b| grid::rank_distance(b.0)), seen)
     }
 
+    /// The points the k-d tree finds within squared distance `r2` of `q` by its own distance, in
+    /// no order (callers widen `r2` with [`inflate`] and re-measure).
+    fn tree_within(&self, q: [f64; 3], r2: f64) -> impl Iterator<Item = u32> + '_ {
+        self.tree()
+            .query(&q)
+            .within::<SquaredEuclidean<f64>>(r2)
+            .unsorted()
+            .execute()
+            .into_iter()
+            .map(|c| c.item)
+    }
+
     /// Every indexed point within squared distance `r2` of `q` (inclusive, by this crate's own
     /// distance), ascending by index. A query or radius the tree cannot take (not
     /// [`indexable`], infinite) is answered by a linear scan; a NaN one finds nothing.
@@ -385,13 +379,7 @@ impl KnnIndex {
             return;
         }
         out.extend(
-            self.tree()
-                .query(&q)
-                .within::<SquaredEuclidean<f64>>(inflate(r2))
-                .unsorted()
-                .execute()
-                .into_iter()
-                .map(|r| r.item)
+            self.tree_within(q, inflate(r2))
                 .filter(|&j| grid::dist2(q, self.local[j as usize]) <= r2),
         );
         out[start..].sort_unstable();
