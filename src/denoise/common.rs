@@ -225,11 +225,19 @@ fn median16(xs: &[f64]) -> f64 {
     for (k, &x) in v.iter_mut().zip(xs) {
         *k = total_key(x);
     }
-    for &(a, b) in &NETWORK16 {
-        let (x, y) = (v[a as usize], v[b as usize]);
-        v[a as usize] = x.min(y);
-        v[b as usize] = x.max(y);
+    // Unrolled with constant indices, so the 16 keys live in registers: a loop over the table
+    // indexes memory, and each compare-exchange waits on the previous one's store (about 1000
+    // instructions a call against about 350; callgrind, 300 k default run).
+    macro_rules! exchanges {
+        ($($i:literal)*) => {$({
+            const A: usize = NETWORK16[$i].0 as usize;
+            const B: usize = NETWORK16[$i].1 as usize;
+            let (x, y) = (v[A], v[B]);
+            v[A] = x.min(y);
+            v[B] = x.max(y);
+        })*};
     }
+    exchanges!(0 1 2 3 4 5 6 7 8 9 10 11 12 13 14 15 16 17 18 19 20 21 22 23 24 25 26 27 28 29 30 31 32 33 34 35 36 37 38 39 40 41 42 43 44 45 46 47 48 49 50 51 52 53 54 55 56 57 58 59 60 61 62);
     // The key transform is an involution.
     f64::from_bits(total_key(f64::from_bits(v[xs.len() / 2] as u64)) as u64)
 }
