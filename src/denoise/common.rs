@@ -227,7 +227,7 @@ fn median16(xs: &[f64]) -> f64 {
     }
     // Unrolled with constant indices, so the 16 keys live in registers: a loop over the table
     // indexes memory, and each compare-exchange waits on the previous one's store (about 1000
-    // instructions a call against about 350; callgrind, 300 k default run).
+    // instructions a call against about 430; callgrind, 300 k default run).
     macro_rules! exchanges {
         ($($i:literal)*) => {$({
             const A: usize = NETWORK16[$i].0 as usize;
