@@ -3,8 +3,9 @@
 //! The planner sees every point once. It keeps the exact bounds of the finite points, the
 //! counts, and a *bottom-k* sample: the points whose hashed global index is among the `S`
 //! smallest, which is a uniform sample that does not depend on batch sizes or thread counts.
-//! Tiles are then chosen by count, not by area: a k-d split of the sample along the longest axis,
-//! at the quantile that leaves the left side a whole number of full target-sized tiles, until
+//! Tiles are then chosen by count, not by area: a k-d split of the sample, along the axis (of
+//! those at least half as long as the longest) whose cut has the fewest sample points within the
+//! halo of it, at the quantile that leaves the left side a whole number of full target-sized tiles, until
 //! each leaf is expected to hold at most the target number of points. Every tile but one thus
 //! holds the target for any cloud size.
 //!
@@ -20,6 +21,7 @@
 use std::collections::BinaryHeap;
 
 use glam::DVec3;
+use smallvec::{SmallVec, smallvec};
 
 use crate::points::Aabb;
 use crate::tiling::TilingError;
@@ -155,7 +157,8 @@ impl Plan {
 
     /// Every tile whose box, grown by `halo` in every direction, contains `p`, appended to `out`.
     pub fn near(&self, p: DVec3, halo: f64, out: &mut Vec<usize>) {
-        let mut stack = vec![0usize];
+        // On the stack: the plan and the partition call this once per sample or input point.
+        let mut stack: SmallVec<[usize; 32]> = smallvec![0];
         while let Some(at) = stack.pop() {
             match self.nodes[at] {
                 Node::Leaf { tile } => out.push(tile),
@@ -352,6 +355,7 @@ impl Planner {
                 bounds,
                 weight,
                 target as f64,
+                halo,
                 &mut nodes,
                 &mut tiles,
             );
@@ -407,6 +411,11 @@ impl Planner {
 /// - `f` over the budget: shrinking cannot help; the first plan is kept.
 /// - `f` within the budget but above the margin: the first tiles whose load is within 5 % of `f`
 ///   (and of the budget) are kept.
+/// - A round whose largest load is not at least [`SHRINK_GAIN`] below the round before's ends
+///   it: the round before's plan is kept (its halos are then narrowed to the bound). Cuts placed where the
+///   cloud is thin ([`thinnest_cut`]) bring the largest load down towards `f` only slowly, one
+///   cluster-avoiding cut at a time; a 3 M cluttered scene at 150 MiB went through 18 rounds
+///   to 2447 tiles (a third of its plan phase) for a plan B that was not taken.
 ///
 /// Each round checks the cancel flag (issue 15: a small budget can take dozens of rounds over
 /// the whole sample, seconds after the read has ended).
@@ -419,6 +428,8 @@ fn shrink(
 ) -> Result<(Plan, f64), TilingError> {
     let mut accept = 0.9 * max_load as f64;
     let mut floor_probed = false;
+    // The round before's plan and its largest load.
+    let mut before: Option<(Plan, f64)> = None;
     // Each round shrinks the target by at least 10 %: the loop ends.
     loop {
         if crate::neighbours::cancel_requested() {
@@ -428,6 +439,12 @@ fn shrink(
         let load = plan.largest_load(pts, weight);
         if load <= accept || target <= MIN_TARGET {
             return Ok((plan, accept));
+        }
+        if let Some((last, was)) = before.take()
+            && load > (1.0 - SHRINK_GAIN) * was
+        {
+            // Fewer tiles for (about) the same load.
+            return Ok((last, accept));
         }
         if !floor_probed {
             floor_probed = true;
@@ -442,6 +459,7 @@ fn shrink(
         }
         let shrunk = (target as f64 * (0.9 * max_load as f64 / load) * 0.95) as u64;
         target = shrunk.min(target * 9 / 10).max(MIN_TARGET);
+        before = Some((plan, load));
     }
 }
 
@@ -451,6 +469,10 @@ fn shrink(
 /// faster; at 1.9 × (a 200 k cluttered scene at 64 MiB) both ran alike; at 3–5 × (the same scene
 /// at 48 MiB, `lone-star` at 64 MiB, a 30 M cluttered scene at 1 GiB) A ran 1.3–2.8 × faster.
 const SHRINK_COST: f64 = 1.75;
+
+/// The least share by which a round of [`shrink`] must lower the largest load for the next
+/// round to be tried.
+const SHRINK_GAIN: f64 = 0.05;
 
 /// The smallest tile target [`Planner::finish_within`] shrinks to.
 pub const MIN_TARGET: u64 = 1000;
@@ -580,12 +602,14 @@ impl Plan {
 }
 
 /// Recursive median split of the sample points `idx` inside `bx`; returns the node index.
+#[allow(clippy::too_many_arguments)]
 fn split(
     pts: &[DVec3],
     idx: &mut [usize],
     bx: Aabb,
     weight: f64,
     target: f64,
+    halo: f64,
     nodes: &mut Vec<Node>,
     tiles: &mut Vec<Tile>,
 ) -> usize {
@@ -624,16 +648,8 @@ fn split(
     let count = ((estimate - slack) / target).ceil().max(2.0);
     let left = (count / 2.0).floor();
     let mid = ((left * target / weight).round() as usize).clamp(1, idx.len() - 1);
-    // The mid-th point along the axis (ties by index: a total order, so the same point a full
-    // sort puts there), found by selection; the order of `idx` decides nothing below.
-    idx.select_nth_unstable_by(mid, |&a, &b| {
-        pts[a][axis].total_cmp(&pts[b][axis]).then(a.cmp(&b))
-    });
-    let mut value = pts[idx[mid]][axis];
-    if value <= bx.min[axis] || value >= bx.max[axis] {
-        // Degenerate median (many equal coordinates): split the box in half instead.
-        value = 0.5 * (bx.min[axis] + bx.max[axis]);
-    }
+    let axis = thinnest_cut(pts, idx, mid, axis, &size, halo);
+    let value = cut_at(pts, idx, mid, axis, &bx);
     // The points below the cut first.
     let mut cut = 0;
     for j in 0..idx.len() {
@@ -648,8 +664,8 @@ fn split(
     lbox.max[axis] = value;
     let mut rbox = bx;
     rbox.min[axis] = value;
-    let left = split(pts, lo, lbox, weight, target, nodes, tiles);
-    let right = split(pts, hi, rbox, weight, target, nodes, tiles);
+    let left = split(pts, lo, lbox, weight, target, halo, nodes, tiles);
+    let right = split(pts, hi, rbox, weight, target, halo, nodes, tiles);
     nodes[at] = Node::Split {
         axis,
         value,
@@ -657,6 +673,67 @@ fn split(
         right,
     };
     at
+}
+
+/// Axes shorter than this share of a box's longest are not cut ([`split`]): the tiles stay
+/// within a bounded aspect ratio, so their halos stay a bounded share of their load.
+const SPLIT_ASPECT: f64 = 0.5;
+
+/// Sample points (evenly strided through the node's) on which [`thinnest_cut`] weighs the axes.
+const SPLIT_PROBES: usize = 4096;
+
+/// The axis [`split`] cuts: of the axes at least [`SPLIT_ASPECT`] as long as the longest
+/// (`longest`), the one whose cut at the `mid`-th of the points `idx` has the fewest points
+/// within `halo` of it, weighed on a strided subset of [`SPLIT_PROBES`] points. Those points are
+/// the halo copies the cut makes, and a cut through a dense cluster overloads the halos of the
+/// tiles on both sides (narrowed to the budget, their owned points near it redone by halo
+/// growth: most of a cluttered scene's tiled cost). Ties go to the longest axis. The cut stays
+/// at `mid`, so every tile but the last still holds the target. Only the speed depends on it.
+fn thinnest_cut(
+    pts: &[DVec3],
+    idx: &[usize],
+    mid: usize,
+    longest: usize,
+    size: &DVec3,
+    halo: f64,
+) -> usize {
+    let step = idx.len().div_ceil(SPLIT_PROBES).max(1);
+    let probes: Vec<DVec3> = idx.iter().step_by(step).map(|&i| pts[i]).collect();
+    if probes.is_empty() {
+        return longest;
+    }
+    let at = (mid * probes.len() / idx.len()).min(probes.len() - 1);
+    let mut best = (longest, usize::MAX);
+    let mut values: Vec<f64> = Vec::with_capacity(probes.len());
+    for a in std::iter::once(longest).chain((0..3).filter(|&a| a != longest)) {
+        if size[a] <= 0.0 || size[a] < SPLIT_ASPECT * size[longest] {
+            continue;
+        }
+        values.clear();
+        values.extend(probes.iter().map(|p| p[a]));
+        let cut = *values.select_nth_unstable_by(at, f64::total_cmp).1;
+        let slab = values.iter().filter(|&&v| (v - cut).abs() <= halo).count();
+        if slab < best.1 {
+            best = (a, slab);
+        }
+    }
+    best.0
+}
+
+/// The value of the `mid`-th of the sample points `idx` along `axis` (ties by index: a total
+/// order, so the same point a full sort puts there), found by selection (the order of `idx`
+/// decides nothing in [`split`]); the middle of `bx` where that is on its boundary (many equal
+/// coordinates).
+fn cut_at(pts: &[DVec3], idx: &mut [usize], mid: usize, axis: usize, bx: &Aabb) -> f64 {
+    idx.select_nth_unstable_by(mid, |&a, &b| {
+        pts[a][axis].total_cmp(&pts[b][axis]).then(a.cmp(&b))
+    });
+    let value = pts[idx[mid]][axis];
+    if value <= bx.min[axis] || value >= bx.max[axis] {
+        0.5 * (bx.min[axis] + bx.max[axis])
+    } else {
+        value
+    }
 }
 
 /// Initial halo: `(reach + 1)` typical k-NN radii ([`crate::denoise::isolation::typical_radius`])
