@@ -915,6 +915,41 @@ mod tests {
     }
 
     #[test]
+    fn issue16_the_first_cut_misses_a_dense_cluster_the_median_of_the_longest_axis_hits() {
+        // 20 000 points on a 1000 × 999 plane (x the longest axis) and a 5 000-point cluster at
+        // x = 500, y = 200: the median in x runs through the cluster; the median in y (about
+        // y = 375) is far from it.
+        let mut pts = Vec::new();
+        for i in 0..20_000u64 {
+            let x = (crate::points::sample_key(i) % 100_000) as f64 * 0.01;
+            let y = (crate::points::sample_key(i + 7) % 100_000) as f64 * 0.00999;
+            pts.push(DVec3::new(x, y, 0.0));
+        }
+        for i in 20_000..25_000u64 {
+            let d = (crate::points::sample_key(i) % 1000) as f64 * 1e-3;
+            pts.push(DVec3::new(500.0 + d, 200.0 - d, 0.0));
+        }
+        let mut p = Planner::new(1 << 16);
+        for (i, &v) in pts.iter().enumerate() {
+            p.add(i as u64, v);
+        }
+        let plan = p.finish(12_500, 16, 2).unwrap();
+        assert_eq!(plan.tiles.len(), 2);
+        let Node::Split { axis, value, .. } = plan.nodes[0] else {
+            panic!("one split");
+        };
+        assert_eq!(axis, 1, "cut at {value}");
+        let near_cut = |q: &&DVec3| (q[axis] - value).abs() <= plan.halo;
+        assert_eq!(pts[20_000..].iter().filter(near_cut).count(), 0);
+        // The halo copies are the plane's strip (about 20 000 · 2 halo / 999), not the cluster
+        // besides: a cut in x would load about 5 000 more.
+        let strip = pts.iter().filter(near_cut).count() as u64;
+        let loads = plan.loads(&pts);
+        assert_eq!(loads.iter().sum::<u64>(), 25_000 + strip, "{loads:?}");
+        assert!(strip < 5_000, "{strip}");
+    }
+
+    #[test]
     fn issue16_a_dense_cluster_narrows_the_halos_near_it_not_the_tiles() {
         // 20 000 plane points and a 5 000-point cluster far smaller than the halo (but wider
         // than the narrowest halo). At a budget the plane's tiles fit with their halo but the
