@@ -389,13 +389,18 @@ impl Planner {
             return Ok(fitted);
         }
         // Plan B: smaller tiles with the whole halo, as far as shrinking helps, then narrowed.
-        let (mut shrunk, accept_shrunk) = shrink(&plan_at, &pts, weight, target, max_load)?;
+        let (mut shrunk, accept_shrunk, stalled) =
+            shrink(&plan_at, &pts, weight, target, max_load)?;
         let (shrunk_max, shrunk_total) = shrunk.fit_halos(&pts, weight, accept_shrunk);
         // A keeps the tiles and pays in halo growth for the owned points near narrowed faces; B
         // pays in halo copies (every copy is loaded, listed and spilled). B is taken unless its
-        // copies make the loads more than `SHRINK_COST` times A's, or A is the one that fits.
+        // copies make the loads more than `SHRINK_COST` times A's, or A is the one that fits. A
+        // B whose shrinking stalled above the bound narrows like A, with more copies: it is
+        // taken only where A does not fit.
         let take_shrunk = fitted_max > accept
-            || (shrunk_max <= accept_shrunk && shrunk_total <= SHRINK_COST * fitted_total);
+            || (!stalled
+                && shrunk_max <= accept_shrunk
+                && shrunk_total <= SHRINK_COST * fitted_total);
         Ok(if take_shrunk { shrunk } else { fitted })
     }
 }
@@ -412,7 +417,8 @@ impl Planner {
 /// - `f` within the budget but above the margin: the first tiles whose load is within 5 % of `f`
 ///   (and of the budget) are kept.
 /// - A round whose largest load is not at least [`SHRINK_GAIN`] below the round before's ends
-///   it: the round before's plan is kept (its halos are then narrowed to the bound). Cuts placed where the
+///   it: the round before's plan is returned, marked as stalled (the third value), and
+///   [`Planner::finish_within`] takes it only where plan A does not fit. Cuts placed where the
 ///   cloud is thin ([`thinnest_cut`]) bring the largest load down towards `f` only slowly, one
 ///   cluster-avoiding cut at a time; a 3 M cluttered scene at 150 MiB went through 18 rounds
 ///   to 2447 tiles (a third of its plan phase) for a plan B that was not taken.
@@ -425,7 +431,7 @@ fn shrink(
     weight: f64,
     mut target: u64,
     max_load: u64,
-) -> Result<(Plan, f64), TilingError> {
+) -> Result<(Plan, f64, bool), TilingError> {
     let mut accept = 0.9 * max_load as f64;
     let mut floor_probed = false;
     // The round before's plan and its largest load.
@@ -438,23 +444,23 @@ fn shrink(
         let plan = plan_at(target);
         let load = plan.largest_load(pts, weight);
         if load <= accept || target <= MIN_TARGET {
-            return Ok((plan, accept));
+            return Ok((plan, accept, false));
         }
         if let Some((last, was)) = before.take()
             && load > (1.0 - SHRINK_GAIN) * was
         {
             // Fewer tiles for (about) the same load.
-            return Ok((last, accept));
+            return Ok((last, accept, true));
         }
         if !floor_probed {
             floor_probed = true;
             let f = plan_at(MIN_TARGET).largest_load(pts, weight);
             if f > max_load as f64 {
-                return Ok((plan, accept));
+                return Ok((plan, accept, false));
             }
             accept = accept.max((1.05 * f).min(max_load as f64));
             if load <= accept {
-                return Ok((plan, accept));
+                return Ok((plan, accept, false));
             }
         }
         let shrunk = (target as f64 * (0.9 * max_load as f64 / load) * 0.95) as u64;
