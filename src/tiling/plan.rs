@@ -866,15 +866,23 @@ mod tests {
 
     /// As [`plane_with_cluster`], the cluster's points `step` apart along a diagonal.
     fn plane_with_cluster_of(step: f64) -> (Planner, Vec<DVec3>) {
+        plane_and_cluster(0.01, |d| {
+            DVec3::new(500.0 + d * step, 500.0 - d * step, d * step)
+        })
+    }
+
+    /// 20 000 points on a plane 1000 long in x and `100 000 · y_unit` in y, then 5 000 cluster
+    /// points `at(d)` for pseudo-random d in 0..1000, all seen by a planner whose sample holds
+    /// every point.
+    fn plane_and_cluster(y_unit: f64, at: impl Fn(f64) -> DVec3) -> (Planner, Vec<DVec3>) {
         let mut pts = Vec::new();
         for i in 0..20_000u64 {
             let x = (crate::points::sample_key(i) % 100_000) as f64 * 0.01;
-            let y = (crate::points::sample_key(i + 7) % 100_000) as f64 * 0.01;
+            let y = (crate::points::sample_key(i + 7) % 100_000) as f64 * y_unit;
             pts.push(DVec3::new(x, y, 0.0));
         }
         for i in 20_000..25_000u64 {
-            let d = (crate::points::sample_key(i) % 1000) as f64 * step;
-            pts.push(DVec3::new(500.0 + d, 500.0 - d, d));
+            pts.push(at((crate::points::sample_key(i) % 1000) as f64));
         }
         let mut p = Planner::new(1 << 16);
         for (i, &v) in pts.iter().enumerate() {
@@ -925,20 +933,9 @@ mod tests {
         // 20 000 points on a 1000 × 999 plane (x the longest axis) and a 5 000-point cluster at
         // x = 500, y = 200: the median in x runs through the cluster; the median in y (about
         // y = 375) is far from it.
-        let mut pts = Vec::new();
-        for i in 0..20_000u64 {
-            let x = (crate::points::sample_key(i) % 100_000) as f64 * 0.01;
-            let y = (crate::points::sample_key(i + 7) % 100_000) as f64 * 0.00999;
-            pts.push(DVec3::new(x, y, 0.0));
-        }
-        for i in 20_000..25_000u64 {
-            let d = (crate::points::sample_key(i) % 1000) as f64 * 1e-3;
-            pts.push(DVec3::new(500.0 + d, 200.0 - d, 0.0));
-        }
-        let mut p = Planner::new(1 << 16);
-        for (i, &v) in pts.iter().enumerate() {
-            p.add(i as u64, v);
-        }
+        let (p, pts) = plane_and_cluster(0.00999, |d| {
+            DVec3::new(500.0 + d * 1e-3, 200.0 - d * 1e-3, 0.0)
+        });
         let plan = p.finish(12_500, 16, 2).unwrap();
         assert_eq!(plan.tiles.len(), 2);
         let Node::Split { axis, value, .. } = plan.nodes[0] else {
