@@ -147,7 +147,7 @@ pub fn globals_partial(
         ..*run
     };
     let g = graph(&run, kg, 0)?;
-    let exact_f = taint(&run, &g, 0);
+    let exact_f = Taint::of(&run, &g).seeds;
     let mut exact = vec![false; run.positions.len()];
     for (j, &i) in g.frame.order.iter().enumerate() {
         exact[i as usize] = !exact_f[j];
@@ -456,34 +456,72 @@ fn inside(region: &Aabb, p: DVec3, r2: f64) -> bool {
     d > 0.0 && d * d > r2 * (1.0 + 1e-9) + f64::MIN_POSITIVE
 }
 
-/// Points whose result may differ from the whole-cloud result after `hops` hops: seeded by the
-/// points without a list of their own and those whose k-NN ball leaves the region (and is not
-/// proven complete), spread to every point whose list holds a tainted one.
-fn taint(run: &CloudRun, g: &Graph, hops: usize) -> Vec<bool> {
-    let (pos, lists, radii) = (&g.frame.positions, &g.lists, &g.radii);
-    let unlisted = |i: usize| g.listed.get(i).is_some_and(|l| !l);
-    let Some(region) = run.region.as_ref() else {
-        return (0..pos.len()).map(unlisted).collect();
-    };
-    let mut t: Vec<bool> = (0..pos.len())
-        .into_par_iter()
-        .map(|i| {
-            unlisted(i)
-                || (!inside(region, pos[i], radii[i])
-                    && !run.complete.is_some_and(|c| c(pos[i], radii[i])))
-        })
-        .collect();
-    for _ in 0..hops {
-        let next: Vec<bool> = (0..pos.len())
+/// Where a run's results may differ from the whole cloud's: seeded by the points without a list
+/// of their own and those whose k-NN ball leaves the region (and is not proven complete), then
+/// spread hop by hop to every point whose list holds a tainted one ([`Taint::spread`]).
+struct Taint {
+    /// Hop 0: the seeds.
+    seeds: Vec<bool>,
+    /// Hop 1: what a point's class reads (its own list, its members' fits and radii).
+    class: Vec<bool>,
+    /// False for a run without a region: only its unlisted points are unknown, and the lists
+    /// of every point within the reach of a wanted one are computed, so nothing spreads.
+    spreads: bool,
+}
+
+impl Taint {
+    fn of(run: &CloudRun, g: &Graph) -> Taint {
+        let (pos, lists, radii) = (&g.frame.positions, &g.lists, &g.radii);
+        let unlisted = |i: usize| g.listed.get(i).is_some_and(|l| !l);
+        let Some(region) = run.region.as_ref() else {
+            let seeds: Vec<bool> = (0..pos.len()).map(unlisted).collect();
+            return Taint {
+                class: seeds.clone(),
+                seeds,
+                spreads: false,
+            };
+        };
+        let seeds: Vec<bool> = (0..pos.len())
             .into_par_iter()
-            .map(|i| t[i] || lists.get(i).iter().any(|&u| t[u as usize]))
+            .map(|i| {
+                unlisted(i)
+                    || (!inside(region, pos[i], radii[i])
+                        && !run.complete.is_some_and(|c| c(pos[i], radii[i])))
+            })
             .collect();
-        if next == t {
-            break;
+        let class = spread_once(lists, &seeds, None);
+        Taint {
+            seeds,
+            class,
+            spreads: true,
         }
-        t = next;
     }
-    t
+
+    /// The taint after `hops` hops, not spread through the `blocked` points: those whose
+    /// contribution to the points listing them is exact whatever lies farther out.
+    fn spread(&self, lists: &Neighbourhoods, hops: usize, blocked: &[bool]) -> Vec<bool> {
+        let mut t = self.seeds.clone();
+        if !self.spreads {
+            return t;
+        }
+        for _ in 0..hops {
+            let next = spread_once(lists, &t, Some(blocked));
+            if next == t {
+                break;
+            }
+            t = next;
+        }
+        t
+    }
+}
+
+/// One hop of taint: `t` and every point whose list holds a tainted point that is not `blocked`.
+fn spread_once(lists: &Neighbourhoods, t: &[bool], blocked: Option<&[bool]>) -> Vec<bool> {
+    let passes = |u: u32| t[u as usize] && blocked.is_none_or(|b| !b[u as usize]);
+    (0..t.len())
+        .into_par_iter()
+        .map(|i| t[i] || lists.get(i).iter().any(|&u| passes(u)))
+        .collect()
 }
 
 /// [`NeighboursError::Cancelled`] once the cancel flag installed on this thread
@@ -522,7 +560,7 @@ fn run_on(
 ) -> Result<CloudResult, DenoiseError> {
     let mut stats = Stats::default();
     let k = params.k();
-    let tainted = taint(run, &g, reach(params));
+    let taint = Taint::of(run, &g);
     let Graph {
         frame,
         lists,
@@ -584,6 +622,8 @@ fn run_on(
     let mut stayed = vec![0u8; n];
     let mut degenerate = vec![false; n];
     let mut structure = None;
+    // Points that stay where they are whatever lies more than a hop away (see `settled`).
+    let mut settled = vec![false; n];
     let held: Vec<bool> = match run.held {
         Some(h) => frame.order.iter().map(|&i| h[i as usize]).collect(),
         None => Vec::new(),
@@ -624,6 +664,12 @@ fn run_on(
                     *d = *c == Structure::Degenerate;
                 }
                 structure = Some(classes.iter().map(|c| *c as u8).collect::<Vec<u8>>());
+            }
+            if last && sched.cycles == 1 && !params.write_normals {
+                let classed = within(near.classes);
+                settled = (0..n)
+                    .map(|j| classed.has(j) && !classes[j].moves())
+                    .collect();
             }
             let planes: Vec<DVec3> = fits
                 .iter()
@@ -724,7 +770,14 @@ fn run_on(
             *st |= flag;
         }
     }
-    let exact: Vec<bool> = tainted.iter().map(|t| !t).collect();
+    // A point whose class does not move keeps its input position (and its counters), lends no
+    // plane, no line and no offset, so what it gives the points listing it, and its own result,
+    // are exact once its class is: its own list and its members' fits and radii, one hop (with
+    // more cycles a later class could move it; written normals read the filter's hops). Taint
+    // does not spread through such a point.
+    let blocked: Vec<bool> = (0..n).map(|j| settled[j] && !taint.class[j]).collect();
+    let tainted = taint.spread(&lists, reach(params), &blocked);
+    let exact: Vec<bool> = (0..n).map(|j| !tainted[j] || blocked[j]).collect();
     Ok(CloudResult {
         positions: frame.restore(&cur),
         exact: frame.restore(&exact),
@@ -1079,6 +1132,92 @@ mod tests {
             }
             assert!(moved > 0, "block {lo}..{hi}: nothing moved");
         }
+    }
+
+    /// A run over part of a cluttered cloud (a noisy plane under volumetric scatter, as
+    /// vegetation over ground): the points that do not move (scatter) are exact once their
+    /// class is, and taint does not spread through them, so more results are exact than with
+    /// written normals (which read the filter's hops and keep the plain rule), and every exact
+    /// result, of either kind, equals the whole cloud's bit for bit.
+    #[test]
+    fn issue16_points_that_stay_are_exact_one_hop_in_and_stop_the_taint() {
+        let mut pts = Vec::new();
+        for i in 0..120 {
+            for j in 0..80 {
+                let h = ((i * 7919 + j * 104_729) % 1000) as f64 / 1000.0 - 0.5;
+                pts.push(DVec3::new(0.5 * i as f64, 0.5 * j as f64, 0.1 * h));
+            }
+        }
+        // Uniform in a box (splitmix64): a multiplicative lattice would lie on planes.
+        let mut state = 7u64;
+        let mut unit = move || {
+            state = state.wrapping_add(0x9E37_79B9_7F4A_7C15);
+            let mut z = state;
+            z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+            z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+            (z ^ (z >> 31)) as f64 / u64::MAX as f64
+        };
+        for _ in 0..3000 {
+            let (x, y, z) = (unit(), unit(), unit());
+            pts.push(DVec3::new(60.0 * x, 40.0 * y, 3.0 + 6.0 * z));
+        }
+        let ties: Vec<u64> = (0..pts.len() as u64).map(|i| 3 * i + 1).collect();
+        let whole = whole_run(&pts, &ties);
+        let n = pts.len() as u64;
+        let params = Params::default();
+        let globals = globals_partial(&whole, &params, n, |_, e| e)
+            .unwrap()
+            .0
+            .finish();
+        let all = run(&whole, &params, &globals).unwrap();
+        // A tile: the points with x < 36, of which those with x < 30 are wanted.
+        let tile: Vec<usize> = (0..pts.len()).filter(|&i| pts[i].x < 36.0).collect();
+        let tile_pts: Vec<DVec3> = tile.iter().map(|&i| pts[i]).collect();
+        let tile_ties: Vec<u64> = tile.iter().map(|&i| ties[i]).collect();
+        let wanted: Vec<bool> = tile_pts.iter().map(|p| p.x < 30.0).collect();
+        let region = Aabb {
+            min: DVec3::splat(-100.0),
+            max: DVec3::new(36.0, 100.0, 100.0),
+        };
+        let part = CloudRun {
+            positions: &tile_pts,
+            ties: &tile_ties,
+            region: Some(region),
+            wanted: Some(&wanted),
+            ..whole
+        };
+        let exact_of = |params: &Params| {
+            let r = run(&part, params, &globals).unwrap();
+            for (j, &i) in tile.iter().enumerate().filter(|&(j, _)| r.exact[j]) {
+                assert_eq!(r.positions[j], all.positions[i], "point {i}");
+            }
+            (0..tile.len()).filter(|&j| wanted[j] && r.exact[j]).count()
+        };
+        let plain = exact_of(&Params {
+            write_normals: true,
+            ..params.clone()
+        });
+        let settled = exact_of(&params);
+        let moved = (0..pts.len())
+            .filter(|&i| all.positions[i] != pts[i])
+            .count();
+        let classes = all.structure.as_ref().unwrap();
+        let scatter = classes
+            .iter()
+            .filter(|&&c| c == Structure::Scatter as u8)
+            .count();
+        let counts: Vec<usize> = (0..6u8)
+            .map(|c| classes.iter().filter(|&&x| x == c).count())
+            .collect();
+        assert!(
+            moved > 5000 && scatter > 1500,
+            "{moved} moved, {scatter} scatter {counts:?}"
+        );
+        assert!(
+            settled > plain + 400,
+            "{settled} exact with the rule, {plain} without, of {} wanted {counts:?} {moved}",
+            wanted.iter().filter(|&&w| w).count()
+        );
     }
 
     /// Issue 9: `--radius` in the input's units. Below the grid's spacing every list is capped
