@@ -145,20 +145,29 @@ pub fn cap_lists(
     let mut out_radii = radii;
     for (i, c) in capped.iter_mut().enumerate() {
         let list = lists.get(i);
-        if out_radii[i] > cap2 {
-            *c = true;
-            out_radii[i] = cap2;
-            indices.extend(
-                list.iter()
-                    .copied()
-                    .take_while(|&u| dist2(i, u as usize) <= cap2),
-            );
-        } else {
-            indices.extend_from_slice(list);
-        }
+        let (kept, r2, was) = cap_one(list, out_radii[i], cap2, |u| dist2(i, u as usize));
+        *c = was;
+        out_radii[i] = r2;
+        indices.extend_from_slice(&list[..kept]);
         offsets.push(indices.len() as u32);
     }
     (Neighbourhoods { offsets, indices }, out_radii, capped)
+}
+
+/// One list of [`cap_lists`]: how many of its members (sorted by distance, `dist2` squared) the
+/// cap `cap2` (squared) keeps, the list's squared radius after it, and whether it was capped.
+pub fn cap_one(
+    list: &[u32],
+    radius2: f64,
+    cap2: f64,
+    dist2: impl Fn(u32) -> f64,
+) -> (usize, f64, bool) {
+    if radius2 > cap2 {
+        let kept = list.iter().take_while(|&&u| dist2(u) <= cap2).count();
+        (kept, cap2, true)
+    } else {
+        (list.len(), radius2, false)
+    }
 }
 
 #[cfg(test)]

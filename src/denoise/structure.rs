@@ -188,13 +188,21 @@ pub fn local_fits_within(pos: &[DVec3], lists: &Neighbourhoods, within: Within) 
         .into_par_iter()
         .with_min_len(1024)
         .map(|i| {
-            let v = pos[i];
-            if !v.is_finite() || !within.has(i) {
+            if !within.has(i) {
                 return fit_of(None);
             }
-            fit_of(pca_fit(lists.get(i).iter().map(|&u| pos[u as usize] - v)))
+            local_fit(pos, lists.get(i), i)
         })
         .collect()
+}
+
+/// The own fit of point `i` over its list `list` (see [`local_fits`]).
+pub fn local_fit(pos: &[DVec3], list: &[u32], i: usize) -> LocalFit {
+    let v = pos[i];
+    if !v.is_finite() {
+        return fit_of(None);
+    }
+    fit_of(pca_fit(list.iter().map(|&u| pos[u as usize] - v)))
 }
 
 /// Final classes: [`Structure::Sparse`] for points whose own k-NN radius (`radii` squared) is at
@@ -216,36 +224,49 @@ pub fn classify_within(
         .into_par_iter()
         .with_min_len(1024)
         .map_init(Vec::new, |buf: &mut Vec<f64>, i| {
-            let own = fits[i].own;
-            if own == Structure::Degenerate || !within.has(i) {
+            if !within.has(i) {
                 return Structure::Degenerate;
             }
-            let list = lists.get(i);
-            buf.clear();
-            buf.extend(
-                list.iter()
-                    .filter(|&&u| u as usize != i)
-                    .map(|&u| radii[u as usize]),
-            );
-            // Squared radii: compare with the square of the ratio.
-            if radii[i] >= SPARSE * SPARSE * median(buf) && radii[i] > 0.0 {
-                return Structure::Sparse;
-            }
-            if own != Structure::Scatter {
-                return own;
-            }
-            let surface = list
+            let members = lists
+                .get(i)
                 .iter()
-                .filter(|&&u| u as usize != i && fits[u as usize].own == Structure::Surface)
-                .count();
-            let others = list.iter().filter(|&&u| u as usize != i).count();
-            if others > 0 && 2 * surface > others {
-                Structure::Edge
-            } else {
-                Structure::Scatter
-            }
+                .map(|&u| (u, fits[u as usize].own, radii[u as usize]));
+            class_of(i, (fits[i].own, radii[i]), members, buf)
         })
         .collect()
+}
+
+/// The final class of point `i` (see [`classify`]) from its own class and squared radius, and
+/// those of its list's members (`(index, own class, squared radius)`, itself included or not).
+pub fn class_of(
+    i: usize,
+    (own, radius2): (Structure, f64),
+    members: impl Iterator<Item = (u32, Structure, f64)> + Clone,
+    buf: &mut Vec<f64>,
+) -> Structure {
+    if own == Structure::Degenerate {
+        return Structure::Degenerate;
+    }
+    let others = members.filter(|&(u, _, _)| u as usize != i);
+    buf.clear();
+    buf.extend(others.clone().map(|(_, _, r)| r));
+    // Squared radii: compare with the square of the ratio.
+    if radius2 >= SPARSE * SPARSE * median(buf) && radius2 > 0.0 {
+        return Structure::Sparse;
+    }
+    if own != Structure::Scatter {
+        return own;
+    }
+    let surface = others
+        .clone()
+        .filter(|&(_, c, _)| c == Structure::Surface)
+        .count();
+    let count = others.count();
+    if count > 0 && 2 * surface > count {
+        Structure::Edge
+    } else {
+        Structure::Scatter
+    }
 }
 
 /// The noise scale of every point: the median residual of the Surface and Line members of its

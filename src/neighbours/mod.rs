@@ -31,7 +31,7 @@
 pub mod brute;
 mod cancel;
 mod closure;
-pub use closure::keep_near;
+pub use closure::{Listed, Prune, Seen, keep_near};
 mod grid;
 mod mesh;
 

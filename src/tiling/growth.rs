@@ -361,7 +361,7 @@ fn by_cells<V>(
         // Only the lists the group's dependencies have (`hops` deep): the cells hold far more
         // points than those, and listing every point was most of this function's cost.
         let seeds: Vec<bool> = pts.iter().map(|p| p.owned).collect();
-        let (lists, radii, _) = index.knn_near(k, &seeds, hops).map_err(denoise)?;
+        let (lists, radii, _) = index.knn_near(k, &seeds, hops, None).map_err(denoise)?;
         let (lists, radii, _) =
             crate::denoise::isolation::cap_lists(lists, radii, plan.isolation, |i, u| {
                 index.dist2(i, u)
