@@ -41,7 +41,7 @@ use rayon::prelude::*;
 use super::common::{Within, merge_step, stay};
 use super::frame::Frame;
 use super::guarded::{self, Guard};
-use super::isolation::cap_one;
+use super::isolation::{cap_one, is_isolated};
 use super::normals::{filter_point_normals, filter_point_normals_within, pca_normals};
 use super::qem::is_duplicate;
 use super::structure::{
@@ -395,6 +395,7 @@ fn graph(
                 cap2: run.isolation.map(|c| c * c),
                 least: super::isolation::least_list(k, run.short_lists),
                 own: vec![None; s.len()],
+                members: Vec::new(),
                 buf: Vec::new(),
             };
             let mut seen = |x: u32, listed: &Listed, decide: bool| stays.seen(x, listed, decide);
@@ -417,7 +418,7 @@ fn graph(
         super::isolation::cap_lists(lists, radii, run.isolation, |i, u| index.dist2(i, u));
     let least = super::isolation::least_list(k, run.short_lists);
     let isolated = (0..lists.len())
-        .map(|i| capped[i] && lists.get(i).len() < least)
+        .map(|i| is_isolated(capped[i], lists.get(i).len(), least))
         .collect();
     Ok(Graph {
         frame,
@@ -442,6 +443,8 @@ struct Stays<'a> {
     least: usize,
     /// Each listed point's own class, capped squared radius and members kept, once computed.
     own: Vec<Option<(Structure, f64, usize)>>,
+    /// Scratch: the members of the point being decided, and their radii for the median.
+    members: Vec<(u32, Structure, f64)>,
     buf: Vec<f64>,
 }
 
@@ -457,7 +460,7 @@ impl Stays<'_> {
             Some(c) => cap_one(list, r2, c, |w| index.dist2(u as usize, w as usize)),
             None => (list.len(), r2, false),
         };
-        let class = if capped && kept < self.least {
+        let class = if is_isolated(capped, kept, self.least) {
             LocalFit::isolated().own
         } else {
             local_fit(self.pos, &list[..kept], u as usize).own
@@ -483,14 +486,24 @@ impl Stays<'_> {
         let Some((list, _)) = listed.get(x) else {
             return undecided;
         };
-        let mut members = Vec::with_capacity(kept);
+        let mut members = std::mem::take(&mut self.members);
+        members.clear();
         for &u in &list[..kept] {
             match self.own(u, listed) {
                 Some((c, r, _)) => members.push((u, c, r)),
-                None => return undecided,
+                None => {
+                    self.members = members;
+                    return undecided;
+                }
             }
         }
-        let class = class_of(x as usize, (own, r2), members.into_iter(), &mut self.buf);
+        let class = class_of(
+            x as usize,
+            (own, r2),
+            members.iter().copied(),
+            &mut self.buf,
+        );
+        self.members = members;
         Seen {
             members: kept,
             stays: Some(!class.moves()),

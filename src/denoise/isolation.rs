@@ -115,6 +115,12 @@ pub fn cap(isolation: Option<f64>, user: Option<f64>) -> (Option<f64>, bool) {
     }
 }
 
+/// True when a point is isolated: its list was `capped` and kept fewer than `least`
+/// ([`least_list`]) members.
+pub fn is_isolated(capped: bool, len: usize, least: usize) -> bool {
+    capped && len < least
+}
+
 /// The list length below which a capped list makes its point isolated, for lists of `k`:
 /// `k` under the isolation radius, `min(k, MIN_LIST)` under the user's radius (`short`).
 pub fn least_list(k: usize, short: bool) -> usize {
