@@ -291,6 +291,14 @@ pub(super) fn stitch_into(
     Ok(s.stitch(&ctx, job).run()?)
 }
 
+/// Removes what a killed stitch left: the output's temporary file, or `stitch.json`'s when it
+/// was killed between the two. The caller holds the stitch lock, so no writer of either runs.
+fn remove_stale_stitch_temps(dir: &Path, job: &Job) -> Result<(), ScaleoutError> {
+    io::remove_stale_temps(&job.output)?;
+    io::remove_stale_temps(&dir.join(STITCH_DONE))?;
+    Ok(())
+}
+
 /// Commits the stitch of `dir` (`stitch.json` after the output, whose length it records).
 fn commit_stitch(dir: &Path, job: &Job, s: &stitch::Stitched) -> Result<(), ScaleoutError> {
     let bytes = std::fs::metadata(&job.output)
@@ -339,8 +347,10 @@ fn stitch_ranges(
                     return Ok(0);
                 }
                 let path = body_path(dir, range);
-                // A killed writer of this range left its temporary file; the lock says none runs.
+                // A killed writer of this range left its temporary files (the body's, or its
+                // marker's when killed between the two); the lock says none runs.
                 io::remove_stale_temps(&path)?;
+                io::remove_stale_temps(&body_done_path(dir, range))?;
                 let body = s.stitch(ctx, &ctx.job).write_body(range, &path, &read)?;
                 let bytes = std::fs::metadata(&path)
                     .map_err(|e| io::IoError::io(&path, e))?
@@ -370,7 +380,7 @@ fn stitch_ranges(
     if committed_stitch(dir, &ctx.frozen).is_some() {
         return Ok(());
     }
-    io::remove_stale_temps(&ctx.job.output)?;
+    remove_stale_stitch_temps(dir, &ctx.job)?;
     let s = match inputs {
         Some(s) => s,
         None => StitchInputs::load(ctx, dir, &ctx.job)?,
@@ -517,7 +527,7 @@ pub fn run_task(
             if committed_stitch(dir, &ctx.frozen).is_some() {
                 r.skipped = 1;
             } else {
-                io::remove_stale_temps(&ctx.job.output)?;
+                remove_stale_stitch_temps(dir, &ctx.job)?;
                 let s = stitch_into(dir, &ctx.job, hooks)?;
                 commit_stitch(dir, &ctx.job, &s)?;
                 r.done = 1;
