@@ -96,17 +96,26 @@ pub fn bytes_per_point(params: &Params, record_len: usize) -> u64 {
     (record_len + 4 * k + 240 + filter + normals) as u64
 }
 
-/// The in-memory driver's peak over [`bytes_per_point`]: the whole cloud's kernel working set
-/// plus what the kernel estimate leaves out (the read cloud's buffers and decoders, allocator
-/// slack, the outlier pass), measured at 1.25–1.35 × the estimate (issue 16, docs/BENCHMARKS.md:
-/// 300 k cluttered scene 750 B a point against 568 B, `lone-star.copc.laz` 742 against 580,
-/// `--paper` 443 against 328). 3/2 keeps an in-memory run within the budget it was chosen for.
-pub const IN_MEMORY_FACTOR: (u64, u64) = (3, 2);
+/// A kernel run's peak over [`bytes_per_point`]: the run's working set plus what the estimate
+/// leaves out (in memory, the read cloud's buffers and decoders and the outlier pass; in a tile,
+/// the round-by-round lists of a growth group; allocator slack in both). Measured at 1.25–1.45 ×
+/// the estimate (issue 16, docs/BENCHMARKS.md: in memory, the 300 k cluttered scene 750 B a point
+/// against 568 B, `lone-star.copc.laz` 742 against 580, `--paper` 443 against 328; a `--paper`
+/// growth group of 1.9 M points on the 100 M cluttered scene 475 B against 328). 3/2 keeps a
+/// run within the budget it was sized for.
+pub const PEAK_FACTOR: (u64, u64) = (3, 2);
+
+/// The peak bytes a point costs a kernel run at `per_point` ([`bytes_per_point`]): with
+/// [`PEAK_FACTOR`].
+pub fn peak_per_point(per_point: u64) -> u64 {
+    let (num, den) = PEAK_FACTOR;
+    per_point.saturating_mul(num) / den
+}
 
 /// True when a cloud of `points` points at `per_point` ([`bytes_per_point`]) runs in memory
 /// within `budget`.
 pub fn fits_in_memory(points: u64, per_point: u64, budget: u64) -> bool {
-    let (num, den) = IN_MEMORY_FACTOR;
+    let (num, den) = PEAK_FACTOR;
     points.saturating_mul(per_point).saturating_mul(num) / den <= budget
 }
 

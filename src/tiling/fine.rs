@@ -215,7 +215,7 @@ mod tests {
 
     /// A grid with a dense cluster in one cell and a lone point two cells away.
     fn grid() -> (Occupancy, Vec<DVec3>, DVec3) {
-        let mut g = Occupancy::new(1.0, DVec3::ZERO);
+        let mut g = Occupancy::new(1.0, DVec3::ZERO, crate::tiling::occupancy::MAX_CELLS);
         let cluster: Vec<DVec3> = (0..2000)
             .map(|i| DVec3::new(2.1 + 0.00035 * i as f64, 0.5, 0.5))
             .collect();

@@ -239,7 +239,7 @@ pub fn process_tile(
     preloaded: Option<Vec<TilePoint>>,
 ) -> Result<TileOutcome, TilingError> {
     let hops = cloud::reach(params);
-    let ((mut results, stats, knn_mean), growth) = growth::with_exact_halo(
+    let ((parts, stats, knn_mean), growth) = growth::with_exact_halo(
         dir,
         plan,
         budget,
@@ -247,6 +247,8 @@ pub fn process_tile(
         (hops, params.k()),
         preloaded,
         |sum: &mut Owned, part: Owned| {
+            // A vector per run: one growing vector would hold up to twice its length in
+            // capacity while the next kernel runs.
             sum.0.extend(part.0);
             sum.1.merge(&part.1);
             sum.2.0.merge(&part.2.0);
@@ -257,6 +259,7 @@ pub fn process_tile(
                 .map_err(|e| TilingError::Denoise { tile: t, error: e })?;
             let keep = |i: usize| pts[i].owned && r.exact[i];
             let mut part = Owned::default();
+            let mut kept = Vec::with_capacity((0..pts.len()).filter(|&i| keep(i)).count());
             let input: Vec<DVec3> = pts.iter().map(|p| p.p).collect();
             r.book(&input, keep, &mut part.1);
             part.1.merge(&Stats {
@@ -267,16 +270,22 @@ pub fn process_tile(
                 let m = r.knn_mean[i];
                 part.2.0.add(m);
                 part.2.1.add(m * m);
-                part.0.push(TileResult {
+                kept.push(TileResult {
                     index: p.index,
                     p: r.positions[i],
                     knn_mean: m,
                     normal: r.normals.as_ref().map(|n| n[i]),
                 });
             }
+            part.0.push(kept);
             Ok((part, r.exact))
         },
     )?;
+    // No kernel runs any more: the parts become one vector of their exact length.
+    let mut results: Vec<TileResult> = Vec::with_capacity(parts.iter().map(Vec::len).sum());
+    for p in parts {
+        results.extend(p);
+    }
     let mut outcome = TileOutcome {
         halo: growth.halo,
         halo_growths: growth.rounds,
@@ -292,6 +301,6 @@ pub fn process_tile(
     Ok(outcome)
 }
 
-/// The owned exact results of some kernel runs: the result records, their counters and the
-/// sums of their outlier statistic and its square.
-type Owned = (Vec<TileResult>, Stats, (ExactSum, ExactSum));
+/// The owned exact results of some kernel runs: the result records of each run, their counters
+/// and the sums of their outlier statistic and its square.
+type Owned = (Vec<Vec<TileResult>>, Stats, (ExactSum, ExactSum));

@@ -18,7 +18,7 @@
 //!
 //! This is what keeps far outliers and sparse stragglers from growing halos: their balls sit in
 //! empty space. Cells start at a quarter of the isolation radius and double while there are more than
-//! [`MAX_CELLS`], so the grid stays small for any input; coarser cells only make the test more
+//! the cap the memory budget sets (at most [`MAX_CELLS`]), so the grid stays small for any input; coarser cells only make the test more
 //! conservative. Only the speed depends on the grid, never a result.
 
 use glam::DVec3;
@@ -26,8 +26,17 @@ use rustc_hash::{FxHashMap, FxHashSet};
 
 use crate::geometry::floor_i64;
 
-/// Most cells kept (about 40 MB at the worst); beyond it the cells double in size.
+/// Most cells a grid keeps whatever the budget; beyond its cap ([`Occupancy::new`]) the cells
+/// double in size.
 pub const MAX_CELLS: usize = 1 << 20;
+
+/// Fewest cells a cap allows (coarsening ends: keys shifted far enough are 0 or −1, eight cells).
+pub const MIN_CELLS: usize = 4096;
+
+/// Heap bytes a cell costs at the worst: a hash-map entry (a key of three `i64` and an `u64`
+/// count, 32 bytes, and a control byte) in a table at most 7/8 full that doubles, so up to
+/// 2 × 8/7 buckets a cell. The memory budget reserves this for each cell of the cap.
+pub const BYTES_PER_CELL: u64 = 76;
 
 /// Most cells one ball test visits; a larger ball is reported as not proven complete.
 const MAX_VISITS: i64 = 1331;
@@ -45,6 +54,8 @@ pub struct Occupancy {
     origin: DVec3,
     /// Points per non-empty cell.
     counts: FxHashMap<[i64; 3], u64>,
+    /// Most cells kept: counting past it doubles the cells.
+    most: usize,
 }
 
 /// Counts of the points one tile loaded, per cell of an [`Occupancy`] grid.
@@ -52,14 +63,25 @@ pub struct Occupancy {
 pub struct Loaded(FxHashMap<[i64; 3], u64>);
 
 impl Occupancy {
-    /// An empty grid of cells of `cell` (positive and finite) with a corner at `origin`.
-    pub fn new(cell: f64, origin: DVec3) -> Occupancy {
+    /// An empty grid of cells of `cell` (positive and finite) with a corner at `origin`, keeping
+    /// at most `most` cells (within [`MIN_CELLS`] and [`MAX_CELLS`]): past it the cells double.
+    pub fn new(cell: f64, origin: DVec3, most: usize) -> Occupancy {
         Occupancy {
             base: cell,
             level: 0,
             origin,
             counts: FxHashMap::default(),
+            most: most.clamp(MIN_CELLS, MAX_CELLS),
         }
+    }
+
+    /// This grid keeping at most `most` cells from now on (coarsened until it does).
+    pub fn capped(mut self, most: usize) -> Occupancy {
+        self.most = most.clamp(MIN_CELLS, MAX_CELLS);
+        while self.counts.len() > self.most {
+            self.coarsen();
+        }
+        self
     }
 
     /// The cell edge length.
@@ -180,15 +202,15 @@ impl Occupancy {
     /// Counts `p` (a processed position).
     pub fn add(&mut self, p: DVec3) {
         *self.counts.entry(self.key(p)).or_insert(0) += 1;
-        while self.counts.len() > MAX_CELLS {
+        while self.counts.len() > self.most {
             self.coarsen();
         }
     }
 
     /// Adds the counts of `other` (a grid of the same base cells and corner, counted over other
-    /// points): the grid one pass over both sets of points would have counted, because a pass
-    /// ends at the finest level at which its points fit [`MAX_CELLS`], and a subset never
-    /// needs a coarser level than the whole.
+    /// points, with the same cap): the grid one pass over both sets of points would have
+    /// counted, because a pass ends at the finest level at which its points fit the cap, and a
+    /// subset never needs a coarser level than the whole.
     pub fn merge(&mut self, other: &Occupancy) {
         debug_assert!(self.base == other.base && self.origin == other.origin);
         while self.level < other.level {
@@ -198,7 +220,7 @@ impl Occupancy {
         for (k, &n) in &other.counts {
             *self.counts.entry(k.map(|c| c >> shift)).or_insert(0) += n;
         }
-        while self.counts.len() > MAX_CELLS {
+        while self.counts.len() > self.most {
             self.coarsen();
         }
     }
@@ -442,6 +464,7 @@ impl Occupancy {
             level,
             origin,
             counts,
+            most: MAX_CELLS,
         })
     }
 }
@@ -452,7 +475,7 @@ mod tests {
 
     #[test]
     fn issue11_a_grid_round_trips_through_its_bytes_and_other_bytes_are_refused() {
-        let mut g = Occupancy::new(0.5, DVec3::new(-3.0, 2.0, 1e6));
+        let mut g = Occupancy::new(0.5, DVec3::new(-3.0, 2.0, 1e6), MAX_CELLS);
         for i in 0..200 {
             g.add(DVec3::new(
                 f64::from(i) * 0.37 - 3.0,
@@ -471,7 +494,7 @@ mod tests {
         bad[8..16].copy_from_slice(&f64::NAN.to_le_bytes());
         assert_eq!(Occupancy::from_bytes(&bad), None);
         // Keys beyond 32 bits and counts beyond 32 bits take 8 bytes each.
-        let mut wide = Occupancy::new(1e-3, DVec3::ZERO);
+        let mut wide = Occupancy::new(1e-3, DVec3::ZERO, MAX_CELLS);
         wide.add(DVec3::new(-3e9, 5.0, 1.0));
         wide.counts.insert([1, 2, 3], u64::from(u32::MAX) + 7);
         let w = wide.to_bytes();
@@ -482,7 +505,7 @@ mod tests {
 
     #[test]
     fn a_ball_in_empty_space_is_complete_and_one_over_unloaded_points_is_not() {
-        let mut g = Occupancy::new(1.0, DVec3::ZERO);
+        let mut g = Occupancy::new(1.0, DVec3::ZERO, MAX_CELLS);
         let inside = [DVec3::new(0.5, 0.5, 0.5), DVec3::new(0.6, 0.5, 0.5)];
         let outside = DVec3::new(3.2, 0.5, 0.5);
         for p in inside.iter().chain([&outside]) {
@@ -510,7 +533,7 @@ mod tests {
             })
             .collect();
         for (cell, level_up) in [(0.4, 0), (0.1, 3)] {
-            let mut g = Occupancy::new(cell, DVec3::new(-1.0, -3.0, 1e5 - 2.0));
+            let mut g = Occupancy::new(cell, DVec3::new(-1.0, -3.0, 1e5 - 2.0), MAX_CELLS);
             g.level = level_up;
             for p in &pts {
                 g.add(*p);
@@ -552,7 +575,7 @@ mod tests {
 
     #[test]
     fn points_in_bounds_the_count_from_above() {
-        let mut g = Occupancy::new(1.0, DVec3::ZERO);
+        let mut g = Occupancy::new(1.0, DVec3::ZERO, MAX_CELLS);
         let pts: Vec<DVec3> = (0..1000)
             .map(|i| {
                 DVec3::new(
@@ -589,7 +612,7 @@ mod tests {
 
     #[test]
     fn issue16_points_in_visits_small_regions_to_the_same_count_as_the_map() {
-        let mut g = Occupancy::new(0.5, DVec3::splat(-1.0));
+        let mut g = Occupancy::new(0.5, DVec3::splat(-1.0), MAX_CELLS);
         let mut x = 0x9e37_79b9_7f4a_7c15u64;
         let mut f = move || {
             x ^= x << 13;
@@ -624,7 +647,7 @@ mod tests {
 
     #[test]
     fn issue16_nearest_cells_reach_the_wanted_count_across_empty_space() {
-        let mut g = Occupancy::new(1.0, DVec3::ZERO);
+        let mut g = Occupancy::new(1.0, DVec3::ZERO, MAX_CELLS);
         let lone = DVec3::new(0.5, 0.5, 0.5);
         g.add(lone);
         // Nothing in the 26 cells around the lone point; a cluster 10 cells away, a farther one.
@@ -647,7 +670,7 @@ mod tests {
 
     #[test]
     fn coarsening_keeps_the_total_and_bounds_the_cells() {
-        let mut g = Occupancy::new(1e-3, DVec3::ZERO);
+        let mut g = Occupancy::new(1e-3, DVec3::ZERO, MAX_CELLS);
         let n = MAX_CELLS as u64 + 10;
         for i in 0..n {
             g.add(DVec3::new(i as f64 * 1e-3 + 5e-4, -0.25, 0.0));
@@ -658,5 +681,28 @@ mod tests {
         let all = g.loaded((0..n).map(|i| DVec3::new(i as f64 * 1e-3 + 5e-4, -0.25, 0.0)));
         assert_eq!(all.0, g.counts);
         assert_eq!(g.counts.values().sum::<u64>(), n);
+    }
+
+    /// Issue 16: the memory budget caps the grid; parts counted under the cap merge to the grid
+    /// one pass under it counts, and so does a finer grid capped afterwards.
+    #[test]
+    fn issue16_a_cap_bounds_the_cells_and_parts_merge_to_one_pass() {
+        let p = |i: u64| DVec3::new((i % 97) as f64 * 0.1, (i / 97) as f64 * 0.1, 0.05);
+        let n = 20_000u64;
+        let mut one = Occupancy::new(0.1, DVec3::ZERO, MIN_CELLS);
+        (0..n).for_each(|i| one.add(p(i)));
+        assert!(one.len() <= MIN_CELLS && one.level > 0, "{}", one.len());
+        let mut a = Occupancy::new(0.1, DVec3::ZERO, MIN_CELLS);
+        let mut b = Occupancy::new(0.1, DVec3::ZERO, MIN_CELLS);
+        (0..n / 3).for_each(|i| a.add(p(i)));
+        (n / 3..n).for_each(|i| b.add(p(i)));
+        a.merge(&b);
+        assert_eq!(a, one);
+        let mut fine = Occupancy::new(0.1, DVec3::ZERO, MAX_CELLS);
+        (0..n).for_each(|i| fine.add(p(i)));
+        assert_eq!(fine.level, 0);
+        assert_eq!(fine.capped(MIN_CELLS), one);
+        // A cap below the least is the least (coarsening always ends).
+        assert_eq!(Occupancy::new(0.1, DVec3::ZERO, 1).most, MIN_CELLS);
     }
 }

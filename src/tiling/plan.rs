@@ -24,7 +24,7 @@ use glam::DVec3;
 use smallvec::{SmallVec, smallvec};
 
 use crate::points::Aabb;
-use crate::tiling::TilingError;
+use crate::tiling::{TilingError, occupancy};
 
 /// Upper bound on the planning sample (the sample the isolation radius is drawn from).
 pub const SAMPLE: usize = crate::denoise::isolation::SAMPLE;
@@ -100,6 +100,16 @@ pub struct Plan {
     /// before there were parts, which therefore never equal a plan of today.
     #[serde(default)]
     pub parts: u64,
+    /// Most cells of the partition's occupancy grid: its share of the memory budget
+    /// ([`crate::tiling::occupancy::BYTES_PER_CELL`] each). [`occupancy::MAX_CELLS`] in plans
+    /// written before there was a cap.
+    #[serde(default = "most_grid_cells")]
+    pub grid_cells: usize,
+}
+
+/// The grid cap of plans written before there was one.
+fn most_grid_cells() -> usize {
+    occupancy::MAX_CELLS
 }
 
 impl Plan {
@@ -373,6 +383,7 @@ impl Planner {
                 isolation,
                 short_lists: false,
                 parts: 1,
+                grid_cells: occupancy::MAX_CELLS,
             }
         };
         let target = target.max(1);

@@ -251,7 +251,7 @@ impl WorkDir {
                 };
                 match &mut merged {
                     Some(m) => m.merge(&o),
-                    None => merged = Some(o),
+                    None => merged = Some(o.capped(plan.grid_cells)),
                 }
             }
         }
@@ -521,10 +521,10 @@ mod tests {
         let pts: Vec<glam::DVec3> = (0..300)
             .map(|i| glam::DVec3::new(f64::from(i) * 0.37, f64::from(i % 7), 0.5))
             .collect();
-        let mut all = Occupancy::new(0.25, glam::DVec3::ZERO);
+        let mut all = Occupancy::new(0.25, glam::DVec3::ZERO, p.grid_cells);
         pts.iter().for_each(|&q| all.add(q));
         let grid = |part: usize| {
-            let mut o = Occupancy::new(0.25, glam::DVec3::ZERO);
+            let mut o = Occupancy::new(0.25, glam::DVec3::ZERO, p.grid_cells);
             pts[part * 100..(part + 1) * 100]
                 .iter()
                 .for_each(|&q| o.add(q));

@@ -132,7 +132,7 @@ pub fn write_part(
     let mut near = Vec::new();
     let mut occupancy = plan
         .isolation
-        .map(|r| Occupancy::new(r / CELLS_PER_RADIUS, plan.origin));
+        .map(|r| Occupancy::new(r / CELLS_PER_RADIUS, plan.origin, plan.grid_cells));
     let each = |b: &PointBatch| {
         for (j, &p) in b.positions.iter().enumerate() {
             if !in_range(p) {
