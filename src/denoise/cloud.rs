@@ -21,9 +21,10 @@
 //!   └──────────────────────────┘
 //! ```
 //!
-//! A method's reach is the number of graph hops its result depends on: each QEM pass reads the
-//! normals of the list members, whose PCA reads *their* lists (2 hops); a bilateral pass reads only
-//! the list of the point (1 hop). The caller grows the halo until every owned point is exact.
+//! A method's reach ([`reach`]) is the number of hops the taint must spread for a result to be
+//! exact: a QEM update reads the list members' normals, whose PCA reads *their* lists, so the
+//! paper's one update is exact once no member's list is tainted (1 hop); a bilateral pass counts
+//! 1 too. The caller grows the halo until every owned point is exact.
 //! For the guarded default, a point whose class does not move (scatter, sparse) keeps its input
 //! position and lends its neighbours nothing beyond its class: it is exact one hop in, and taint
 //! does not spread through it ([`Taint::spread`]).
@@ -260,7 +261,24 @@ pub fn reach(params: &Params) -> usize {
         // past the first update, which the second update reaches anyway (the default has two),
         // so only a single-update cycle needs the extra hop.
         Method::Qem if params.guard => s.cycles * (3 + s.filter + s.updates.max(2)),
-        Method::Qem => s.cycles * (2 + s.filter + s.updates),
+        // Without the guard, a hop is counted where a pass reads what its members computed:
+        // taint starts at the points whose own list may be wrong (hop 0), so a pass that reads a
+        // point's own list, as the first cycle's PCA normals do, adds none. Each filter
+        // iteration and each update reads the members' normals and positions (1 each); a later
+        // cycle's normals read the members' moved positions (1). The paper's one update: 1 hop
+        // (it was counted 3 until 2026-12-06, which grew cluttered tiles' halos for nothing;
+        // DECISIONS "The paper operator's reach is one hop"). Written normals' classes read the
+        // members' fits, one hop past the last cycle's normals.
+        Method::Qem => {
+            let (c, f, u) = (s.cycles, s.filter, s.updates);
+            let positions = c * (f + u) + c.saturating_sub(1);
+            let written = if params.write_normals {
+                c.saturating_sub(1) * (f + u + 1) + f + 1
+            } else {
+                0
+            };
+            positions.max(written).max(1)
+        }
         // The written classes of the last cycle read the members' fits: one hop past its
         // normals, which is past a bilateral pass's reach (the QEM cycles reach further anyway).
         Method::Bilateral if params.write_normals => s.cycles + 1,
@@ -1354,6 +1372,70 @@ mod tests {
                 settled > plain + gain,
                 "from {from}: {settled} exact with the rule, {plain} without, of {} wanted",
                 wanted.iter().filter(|&&w| w).count()
+            );
+        }
+    }
+
+    /// Issue 16: the QEM operator without the guard reads one hop of lists per filter iteration
+    /// and per update, plus one per later cycle (`reach`): a tile's exact results equal the
+    /// whole cloud's bit for bit — the paper's one update, a schedule of two cycles with a
+    /// filter iteration and two updates, and written normals — and the paper's results are
+    /// exact three list radii closer to the tile's face than the reach of 3 it had allowed.
+    #[test]
+    fn issue16_the_paper_operator_reads_one_hop_of_lists() {
+        let mut pts = Vec::new();
+        for i in 0..120 {
+            for j in 0..60 {
+                let h = ((i * 7919 + j * 104_729) % 1000) as f64 / 1000.0 - 0.5;
+                let (x, y) = (0.5 * i as f64, 0.5 * j as f64);
+                pts.push(DVec3::new(x, y, 2.0 * (x / 3.0).sin() + 0.1 * h));
+            }
+        }
+        for i in 0..1500u64 {
+            let u = |m: u64| ((i * m + 17) % 1009) as f64 / 1009.0;
+            pts.push(DVec3::new(60.0 * u(389), 30.0 * u(577), 3.0 + 6.0 * u(811)));
+        }
+        let ties: Vec<u64> = (0..pts.len() as u64).map(|i| 5 * i + 2).collect();
+        let whole = whole_run(&pts, &ties);
+        let tile: Vec<usize> = (0..pts.len()).filter(|&i| pts[i].x < 36.0).collect();
+        let tile_pts: Vec<DVec3> = tile.iter().map(|&i| pts[i]).collect();
+        let tile_ties: Vec<u64> = tile.iter().map(|&i| ties[i]).collect();
+        let part = CloudRun {
+            positions: &tile_pts,
+            ties: &tile_ties,
+            region: Some(Aabb {
+                min: DVec3::splat(-100.0),
+                max: DVec3::new(36.0, 100.0, 100.0),
+            }),
+            ..whole
+        };
+        let paper = Params::paper();
+        let cycles = Params {
+            iterations: 2,
+            filter: Some(1),
+            updates: Some(2),
+            ..Params::paper()
+        };
+        let written = Params {
+            write_normals: true,
+            ..Params::paper()
+        };
+        assert_eq!([reach(&paper), reach(&cycles), reach(&written)], [1, 7, 1]);
+        for params in [&paper, &cycles, &written] {
+            let globals = Globals::default();
+            let all = run(&whole, params, &globals).unwrap();
+            let r = run(&part, params, &globals).unwrap();
+            let mut band = 0;
+            for (j, &i) in tile.iter().enumerate().filter(|&(j, _)| r.exact[j]) {
+                assert_eq!(r.positions[j], all.positions[i], "{params:?}: point {i}");
+                if let (Some(a), Some(b)) = (&r.normals, &all.normals) {
+                    assert_eq!(a[j], b[i], "{params:?}: normal of point {i}");
+                }
+                band += usize::from((32.5..33.5).contains(&pts[i].x) && pts[i].z < 2.5);
+            }
+            assert!(
+                params != &paper || band >= 100,
+                "{band} surface points exact 2.5 to 3.5 from the face"
             );
         }
     }
