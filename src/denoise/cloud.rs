@@ -1380,7 +1380,7 @@ mod tests {
     /// and per update, plus one per later cycle (`reach`): a tile's exact results equal the
     /// whole cloud's bit for bit — the paper's one update, a schedule of two cycles with a
     /// filter iteration and two updates, and written normals — and the paper's results are
-    /// exact three list radii closer to the tile's face than the reach of 3 it had allowed.
+    /// exact two list radii closer to the tile's face than the reach of 3 it had allowed.
     #[test]
     fn issue16_the_paper_operator_reads_one_hop_of_lists() {
         let mut pts = Vec::new();

@@ -23,7 +23,8 @@ pub struct Limits {
     pub grid_cells: usize,
 }
 
-/// The share of the memory budget the occupancy grid may take (1/14: its 2²⁰ cells at 1 GiB).
+/// The share of the memory budget the occupancy grid may take (1/14: about a million cells at
+/// 1 GiB, as many as the fixed cap allowed before).
 const GRID_SHARE: u64 = 14;
 
 impl Limits {
