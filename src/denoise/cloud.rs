@@ -253,14 +253,13 @@ fn partial_of(
 pub fn reach(params: &Params) -> usize {
     let s = params.schedule(false);
     match params.method {
-        // Per cycle: PCA normals (1 hop), each filter iteration (1), each update (1: the
-        // neighbours' planes, moved by the previous update); the first update also reads the
-        // neighbours' normals, whose PCA reads their lists (+1).
-        // The guarded operator's classes and noise scales read the members' fits (+1). Its
-        // gains, computed once per cycle, read the first update's offsets of the list: one hop
-        // past the first update, which the second update reaches anyway (the default has two),
-        // so only a single-update cycle needs the extra hop.
-        Method::Qem if params.guard => s.cycles * (3 + s.filter + s.updates.max(2)),
+        // The guarded operator reads lists as far out as its last cycle computes local fits
+        // (`graded`: the updates, the gains one hop past the first, the filter iterations, the
+        // classes reading their members' fits), and each earlier cycle one hop past that (the
+        // next cycle's fits read the members' moved positions). 7 for the default; it was
+        // `cycles × (3 + filter + max(updates, 2))`, 8, until 2026-12-06 (DECISIONS "The paper
+        // operator's reach is one hop").
+        Method::Qem if params.guard => s.cycles * graded(&s).fits + s.cycles.saturating_sub(1),
         // Without the guard, a hop is counted where a pass reads what its members computed:
         // taint starts at the points whose own list may be wrong (hop 0), so a pass that reads a
         // point's own list, as the first cycle's PCA normals do, adds none. Each filter
