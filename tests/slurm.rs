@@ -476,15 +476,35 @@ fn issue11_slurm_a_task_cancelled_mid_way_and_requeued_changes_no_byte() {
         &["update", &format!("JobId={task}"), "StartTime=now"],
     );
     let each: Vec<String> = (0..n).map(|i| format!("{tiles_id}_{i}")).collect();
-    job.c.run(
-        "scontrol",
-        &[
-            "update",
-            &format!("JobId={stitch_id}"),
-            &format!("Dependency=afterok:{}", each.join(":")),
-        ],
-    );
+    let depend = format!("Dependency=afterok:{}", each.join(":"));
+    let update = || {
+        job.c.run(
+            "scontrol",
+            &["update", &format!("JobId={stitch_id}"), &depend],
+        )
+    };
+    update();
     let want = job.reference();
+    // When slurmctld evaluated the new dependency before it saw the requeue, it judged it
+    // against the cancelled task and marks it never satisfiable, and it does not look again
+    // (CI once waited 90 s on that): the update is repeated, as an operator would, until the
+    // stitch leaves the queue's pending state for another reason.
+    let start = Instant::now();
+    loop {
+        let st = job.c.states(std::slice::from_ref(&stitch_id));
+        match st.first() {
+            Some(r) if r.1 == "PENDING" && r.2 == "DependencyNeverSatisfied" => {
+                update();
+            }
+            Some(r) if r.1 == "PENDING" => {}
+            _ => break,
+        }
+        assert!(
+            start.elapsed() < TIMEOUT,
+            "{stitch_id} still pending: {st:?}"
+        );
+        std::thread::sleep(Duration::from_secs(5));
+    }
     job.wait_completed(std::slice::from_ref(&stitch_id));
     let all: Vec<String> = phases.iter().flat_map(|p| p.ids.clone()).collect();
     job.wait_completed(&all);
