@@ -1113,6 +1113,23 @@ mod tests {
         }
     }
 
+    /// A tile of `pts` (with `ties`): the points with x below `face`, their indices in `pts`,
+    /// and the region holding every point of the cloud inside it.
+    fn tile_below(
+        pts: &[DVec3],
+        ties: &[u64],
+        face: f64,
+    ) -> (Vec<usize>, Vec<DVec3>, Vec<u64>, Aabb) {
+        let tile: Vec<usize> = (0..pts.len()).filter(|&i| pts[i].x < face).collect();
+        let tile_pts = tile.iter().map(|&i| pts[i]).collect();
+        let tile_ties = tile.iter().map(|&i| ties[i]).collect();
+        let region = Aabb {
+            min: DVec3::splat(-100.0),
+            max: DVec3::new(face, 100.0, 100.0),
+        };
+        (tile, tile_pts, tile_ties, region)
+    }
+
     #[test]
     fn issue9_globals_from_the_k_lists_equal_the_separate_pre_pass() {
         let pts = issue9_cloud();
@@ -1334,13 +1351,7 @@ mod tests {
         // A tile: the points with x < 36. Wanted: those with x < 30 (most of the tile: every
         // list, then `keep_near`), or with 26 ≤ x < 30 (a few: lists round by round, which stop
         // one hop past the points that stay).
-        let tile: Vec<usize> = (0..pts.len()).filter(|&i| pts[i].x < 36.0).collect();
-        let tile_pts: Vec<DVec3> = tile.iter().map(|&i| pts[i]).collect();
-        let tile_ties: Vec<u64> = tile.iter().map(|&i| ties[i]).collect();
-        let region = Aabb {
-            min: DVec3::splat(-100.0),
-            max: DVec3::new(36.0, 100.0, 100.0),
-        };
+        let (tile, tile_pts, tile_ties, region) = tile_below(&pts, &ties, 36.0);
         for (from, gain) in [(0.0, 400), (26.0, 100)] {
             let wanted: Vec<bool> = tile_pts
                 .iter()
@@ -1396,16 +1407,11 @@ mod tests {
         }
         let ties: Vec<u64> = (0..pts.len() as u64).map(|i| 5 * i + 2).collect();
         let whole = whole_run(&pts, &ties);
-        let tile: Vec<usize> = (0..pts.len()).filter(|&i| pts[i].x < 36.0).collect();
-        let tile_pts: Vec<DVec3> = tile.iter().map(|&i| pts[i]).collect();
-        let tile_ties: Vec<u64> = tile.iter().map(|&i| ties[i]).collect();
+        let (tile, tile_pts, tile_ties, region) = tile_below(&pts, &ties, 36.0);
         let part = CloudRun {
             positions: &tile_pts,
             ties: &tile_ties,
-            region: Some(Aabb {
-                min: DVec3::splat(-100.0),
-                max: DVec3::new(36.0, 100.0, 100.0),
-            }),
+            region: Some(region),
             ..whole
         };
         let paper = Params::paper();
