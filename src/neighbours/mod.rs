@@ -491,7 +491,12 @@ impl KnnIndex {
         let ids: Vec<u32> = (0..self.local.len() as u32)
             .filter(|&i| indexable(self.local[i as usize]))
             .collect();
-        Ok(grid::BaseLevel::build(&self.local, ids, self.cell_size(k)))
+        Ok(grid::BaseLevel::build(
+            &self.local,
+            ids,
+            self.cell_size(k),
+            self.ties(),
+        ))
     }
 
     /// [`KnnIndex::knn_asked`] from a first level `base` that [`KnnIndex::base_level`] built for
