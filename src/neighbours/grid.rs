@@ -10,7 +10,7 @@
 //! goes to the k-d tree, so the answer is exactly the brute-force one whatever the cell size.
 //!
 //! ```text
-//!   level 0: cell c₀ ≈ 1.5 × median k-NN radius (from a sample)
+//!   level 0: cell c₀ ≈ 1.5 × median k-NN radius (from a sample; area-weighted when a fifth is far)
 //!   ┌───┬───┬───┐
 //!   │   │   │   │   candidates of every query in the centre cell = the 27 cells around it;
 //!   ├───┼───┼───┤   exact when the k-th distance < c + distance from the query to its own

@@ -392,7 +392,8 @@ impl KnnIndex {
     }
 
     /// The level-0 grid cell size for [`KnnIndex::knn_all`]: 1.5 × the median k-th neighbour
-    /// distance of [`CELL_PROBES`] points, estimated on an evenly strided subsample of about
+    /// distance of [`CELL_PROBES`] points (area-weighted where many are far: [`cell_radius`]),
+    /// estimated on an evenly strided subsample of about
     /// [`CELL_SAMPLE`] points (for a stride
     /// `s`, a ball holding k − 1 neighbours holds about (k − 1)/s sample points; below 5, radii
     /// are scaled as on a surface, ∝ √count); 0 when it cannot be estimated (the grid then
