@@ -1113,6 +1113,11 @@ mod tests {
         }
     }
 
+    /// A deterministic jitter in [−0.5, 0.5) for grid point (i, j) of the test surfaces.
+    fn jitter(i: usize, j: usize) -> f64 {
+        ((i * 7919 + j * 104_729) % 1000) as f64 / 1000.0 - 0.5
+    }
+
     /// A tile of `pts` (with `ties`): the points with x below `face`, their indices in `pts`,
     /// and the region holding every point of the cloud inside it.
     fn tile_below(
@@ -1245,7 +1250,7 @@ mod tests {
         let mut pts = Vec::new();
         for i in 0..80 {
             for j in 0..80 {
-                let h = ((i * 7919 + j * 104_729) % 1000) as f64 / 1000.0 - 0.5;
+                let h = jitter(i, j);
                 let crease = 0.6 * (i as f64 - 40.0).max(0.0);
                 let wave = 2.0 * (0.2 * i as f64).sin() * (0.15 * j as f64).cos();
                 pts.push(DVec3::new(i as f64, j as f64, wave + crease + 0.3 * h));
@@ -1310,7 +1315,7 @@ mod tests {
         let mut pts = Vec::new();
         for i in 0..120 {
             for j in 0..80 {
-                let h = ((i * 7919 + j * 104_729) % 1000) as f64 / 1000.0 - 0.5;
+                let h = jitter(i, j);
                 pts.push(DVec3::new(0.5 * i as f64, 0.5 * j as f64, 0.1 * h));
             }
         }
@@ -1396,7 +1401,7 @@ mod tests {
         let mut pts = Vec::new();
         for i in 0..120 {
             for j in 0..60 {
-                let h = ((i * 7919 + j * 104_729) % 1000) as f64 / 1000.0 - 0.5;
+                let h = jitter(i, j);
                 let (x, y) = (0.5 * i as f64, 0.5 * j as f64);
                 pts.push(DVec3::new(x, y, 2.0 * (x / 3.0).sin() + 0.1 * h));
             }
