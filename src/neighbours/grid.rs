@@ -10,7 +10,8 @@
 //! goes to the k-d tree, so the answer is exactly the brute-force one whatever the cell size.
 //!
 //! ```text
-//!   level 0: cell c₀ ≈ 1.5 × median k-NN radius (from a sample; area-weighted when a fifth is far)
+//!   level 0: cell c₀ ≈ 1.5 × median k-NN radius (from a sample; area-weighted when a trial
+//!                                              leaves ≥ 1/8 of it to the tree)
 //!   ┌───┬───┬───┐
 //!   │   │   │   │   candidates of every query in the centre cell = the 27 cells around it;
 //!   ├───┼───┼───┤   exact when the k-th distance < c + distance from the query to its own
@@ -509,6 +510,49 @@ impl BaseLevel {
         ties: Option<&[u64]>,
     ) -> BaseLevel {
         BaseLevel(Level::build(local, ids, cell, ties))
+    }
+
+    /// How many of the `probes` (indices into `local`, points of this level) a pass with lists
+    /// of `k` would leave to the k-d tree at this level: those whose k-th distance the 3 × 3 × 3
+    /// block cannot prove, nor the 5 × 5 × 5 block (skipped, as in the pass, when it holds more
+    /// than [`RING2_LOAD_PER_K`] · k candidates). A probe in a dense cell counts as answered (a
+    /// finer level takes it). Only k-th distances are measured, so ties do not matter.
+    pub(crate) fn tree_bound(&self, local: &[[f64; 3]], probes: &[u32], k: usize) -> usize {
+        let level = &self.0;
+        let me = level.ancestor();
+        let mut d: Vec<f64> = Vec::new();
+        let mut lookups = 0;
+        let add = |d: &mut Vec<f64>, q: [f64; 3], a: usize, b: usize| {
+            d.extend((a..b).map(|j| dist2(q, level.point(j))));
+        };
+        let proved = |d: &mut Vec<f64>, q: [f64; 3], ring: i64| {
+            if d.len() < k {
+                return false;
+            }
+            let (_, &mut dk, _) = d.select_nth_unstable_by(k - 1, f64::total_cmp);
+            let reach = me.reach(q, ring);
+            reach > 0.0 && dk < reach * reach
+        };
+        probes
+            .iter()
+            .filter(|&&i| {
+                let q = local[i as usize];
+                let c = level.coord(q);
+                d.clear();
+                let ring1 = level.for_cells(c, 0, 1, &mut lookups, |a, b| {
+                    add(&mut d, q, a, b);
+                    d.len() <= DENSE_LOAD_PER_K * k
+                });
+                if !ring1 || proved(&mut d, q, 1) {
+                    return false;
+                }
+                let ring2 = level.for_cells(c, 2, 2, &mut lookups, |a, b| {
+                    add(&mut d, q, a, b);
+                    d.len() <= RING2_LOAD_PER_K * k
+                });
+                !ring2 || !proved(&mut d, q, 2)
+            })
+            .count()
     }
 }
 

@@ -146,7 +146,7 @@ pub struct KnnIndex {
     indexed: usize,
     /// Tie key of each point (its global index); `None` means the local index.
     ties: Option<Vec<u64>>,
-    /// The grid's cell size for one k, estimated on first use ([`KnnIndex::cell_size`]): the
+    /// The grid's cell size for one k, chosen on first use ([`KnnIndex::base_level`]): the
     /// rounds of [`KnnIndex::knn_near`] ask it again on the same points, and in a tiled run with
     /// many halo-growth groups the estimate was a quarter of the CPU (issue 16).
     cell: OnceLock<(usize, f64)>,
@@ -391,21 +391,15 @@ impl KnnIndex {
         self.local[i]
     }
 
-    /// The level-0 grid cell size for [`KnnIndex::knn_all`]: 1.5 × the median k-th neighbour
-    /// distance of [`CELL_PROBES`] points (area-weighted where many are far: [`cell_radius`]),
-    /// estimated on an evenly strided subsample of about
-    /// [`CELL_SAMPLE`] points (for a stride
-    /// `s`, a ball holding k − 1 neighbours holds about (k − 1)/s sample points; below 5, radii
-    /// are scaled as on a surface, ∝ √count); 0 when it cannot be estimated (the grid then
-    /// chooses). Only speed depends on it: the grid pass is exact for any cell size, and refines
+    /// The level-0 grid cell sizes for [`KnnIndex::knn_all`] (plain, weighted): 1.5 × the median
+    /// k-th neighbour distance of [`CELL_PROBES`] points, and 1.5 × the area-weighted median of
+    /// the same distances ([`cell_radii`]), estimated on an evenly strided subsample of about
+    /// [`CELL_SAMPLE`] points (for a stride `s`, a ball holding k − 1 neighbours holds about
+    /// (k − 1)/s sample points; below 5, radii are scaled as on a surface, ∝ √count); 0 when it
+    /// cannot be estimated (the grid then chooses). [`KnnIndex::base_level`] chooses between
+    /// them. Only speed depends on it: the grid pass is exact for any cell size, and refines
     /// dense cells itself.
-    fn cell_size(&self, k: usize) -> f64 {
-        let &(at, cell) = self.cell.get_or_init(|| (k, self.estimate_cell(k)));
-        if at == k { cell } else { self.estimate_cell(k) }
-    }
-
-    /// [`KnnIndex::cell_size`], computed.
-    fn estimate_cell(&self, k: usize) -> f64 {
+    fn estimate_cells(&self, k: usize) -> (f64, f64) {
         let stride = (self.indexed / CELL_SAMPLE).max(1);
         let sample: Vec<DVec3> = self
             .local
@@ -418,10 +412,10 @@ impl KnnIndex {
         let ks = ((k - 1) as f64 / stride as f64).round().max(5.0) as usize + 1;
         let scale = ((k - 1) as f64 / ((ks - 1) * stride) as f64).sqrt();
         if sample.len() <= ks {
-            return 0.0;
+            return (0.0, 0.0);
         }
         let Ok(sub) = KnnIndex::build(&sample, DVec3::ZERO) else {
-            return 0.0;
+            return (0.0, 0.0);
         };
         let step = (sample.len() / CELL_PROBES).max(1);
         let mut radii: Vec<f64> = (0..sample.len())
@@ -432,7 +426,8 @@ impl KnnIndex {
             })
             .collect();
         radii.sort_by(f64::total_cmp);
-        1.5 * cell_radius(&radii) * scale
+        let (plain, weighted) = cell_radii(&radii);
+        (1.5 * plain * scale, 1.5 * weighted * scale)
     }
 
     /// k-NN lists of every indexed point (the point itself included), computed in parallel;
@@ -474,7 +469,11 @@ impl KnnIndex {
     }
 
     /// The first grid level of a pass with lists of `k` (every indexed point sorted into
-    /// cells), to share between the passes of [`KnnIndex::knn_from`].
+    /// cells), to share between the passes of [`KnnIndex::knn_from`]. Its cell is the plain one
+    /// of [`KnnIndex::estimate_cells`], unless the weighted one is over [`WEIGHTED_LARGER`] ×
+    /// larger and [`CELL_PROBES`] probes (evenly strided over the indexed points), queried on
+    /// the plain level as a pass would, leave one in [`TREE_SHARE`] or more to the k-d tree
+    /// ([`grid::BaseLevel::tree_bound`]): then the level is rebuilt with the weighted cell.
     ///
     /// # Errors
     /// [`NeighboursError::ZeroK`], [`NeighboursError::TooFewPoints`] when fewer than `k` points
@@ -489,15 +488,38 @@ impl KnnIndex {
                 k,
             });
         }
-        let ids: Vec<u32> = (0..self.local.len() as u32)
-            .filter(|&i| indexable(self.local[i as usize]))
-            .collect();
-        Ok(grid::BaseLevel::build(
-            &self.local,
-            ids,
-            self.cell_size(k),
-            self.ties(),
-        ))
+        let ids = || -> Vec<u32> {
+            (0..self.local.len() as u32)
+                .filter(|&i| indexable(self.local[i as usize]))
+                .collect()
+        };
+        let build = |cell: f64| grid::BaseLevel::build(&self.local, ids(), cell, self.ties());
+        if let Some(&(at, cell)) = self.cell.get()
+            && at == k
+        {
+            return Ok(build(cell));
+        }
+        // The plain cell unless the weighted one is much larger and a trial on the plain level
+        // shows it would leave many queries to the tree ([`TREE_SHARE`]).
+        let (plain, weighted) = self.estimate_cells(k);
+        let base = build(plain);
+        let mut cell = plain;
+        if weighted > WEIGHTED_LARGER * plain {
+            let all = ids();
+            let step = (all.len() / CELL_PROBES).max(1);
+            let probes: Vec<u32> = all.into_iter().step_by(step).collect();
+            if base.tree_bound(&self.local, &probes, k) * TREE_SHARE >= probes.len() {
+                cell = weighted;
+            }
+        }
+        // Cached for the first k asked (the rounds of `knn_near` ask it again).
+        let _ = self.cell.set((k, cell));
+        Ok(if cell == plain {
+            base
+        } else {
+            drop(base);
+            build(cell)
+        })
     }
 
     /// [`KnnIndex::knn_asked`] from a first level `base` that [`KnnIndex::base_level`] built for
@@ -611,47 +633,46 @@ impl KnnIndex {
     }
 }
 
-/// The k-th neighbour distance the first grid level's cell is sized from, given the probes'
-/// distances `radii` (ascending): their median, unless one in [`FAR_SHARE`] of them or more lies
-/// beyond [`FAR_PROBE`] × the median, whose queries the grid would leave to the k-d tree. Then
-/// the points are two populations, a dense one that has most of the points and a sparse one
-/// that has most of the space (a tile that is mostly one dense cluster, with the surfaces
-/// around it), and the median is taken with each probe weighted by the area it stands for, r²
-/// (capped at [`WEIGHT_CAP`] × the median, so that a few far outliers do not decide): the cells
-/// suit the sparse population and the dense one refines into finer levels, as the grid does for
-/// any dense cell. Only speed depends on it: the grid pass is exact for any cell size.
-fn cell_radius(radii: &[f64]) -> f64 {
+/// The k-th neighbour distances the first grid level's cell may be sized from, given the
+/// probes' distances `radii` (ascending): their median, and their median with each probe
+/// weighted by the area it stands for, r² (capped at [`WEIGHT_CAP`] × the median, so that a few
+/// far outliers do not decide). Where the points are two populations, a dense one that has most
+/// of the points and a sparse one that has most of the space (a tile that is mostly one dense
+/// cluster, with the surfaces around it), the plain median suits the cluster and leaves the
+/// surfaces' queries to the k-d tree; the weighted one suits the surfaces, and the cluster
+/// refines into finer levels, as the grid does for any dense cell. [`KnnIndex::base_level`]
+/// chooses by trial. Only speed depends on it: the grid pass is exact for any cell size.
+fn cell_radii(radii: &[f64]) -> (f64, f64) {
     let Some(&median) = radii.get(radii.len() / 2) else {
-        return 0.0;
+        return (0.0, 0.0);
     };
-    let far = radii.iter().filter(|&&r| r > FAR_PROBE * median).count();
-    if far * FAR_SHARE < radii.len() {
-        return median;
-    }
     let weight = |r: f64| r.min(WEIGHT_CAP * median).powi(2);
     let half = 0.5 * radii.iter().map(|&r| weight(r)).sum::<f64>();
     let mut acc = 0.0;
-    radii
+    let weighted = radii
         .iter()
         .copied()
         .find(|&r| {
             acc += weight(r);
             acc >= half
         })
-        .unwrap_or(median)
+        .unwrap_or(median);
+    (median, weighted)
 }
 
-/// See [`cell_radius`]: a probe this many medians out would go to the k-d tree (ring 2 of cells
-/// of 1.5 medians reaches 3 to 4.5 medians).
-const FAR_PROBE: f64 = 3.0;
-/// See [`cell_radius`]. On the real scans of `../shared` at most one probe in ten lies that far
-/// (`kitti_000008.bin`, `room_scan1.pcd`), so their cells stay as they were; in the slow tiles
-/// of the 30 M cluttered scene (up to 41 % of their queries went to the tree) 26–42 % do.
-const FAR_SHARE: usize = 5;
-/// See [`cell_radius`].
+/// See [`KnnIndex::base_level`]: the weighted cell is tried only when it is this much larger
+/// than the plain one (on a locally uniform cloud the two differ by a few per cent).
+const WEIGHTED_LARGER: f64 = 1.25;
+/// See [`KnnIndex::base_level`]: the weighted cell is taken when one probe in this many or more
+/// would go to the k-d tree on the plain cell. The real scans of `../shared` leave at most 7 %
+/// of their queries to the tree (`room_scan1.pcd`, `kitti_000008.bin`), where the weighted cell
+/// costs 13–19 % more k-NN instructions; the cluttered scenes' slow tiles 22–41 %, where it
+/// saves a third of the tile's time.
+const TREE_SHARE: usize = 8;
+/// See [`cell_radii`].
 const WEIGHT_CAP: f64 = 8.0;
 
-/// Points of the subsample [`KnnIndex::cell_size`] estimates the grid's cell from (at most about
+/// Points of the subsample [`KnnIndex::estimate_cells`] estimates the grid's cell from (at most about
 /// this many), and of its points whose k-th neighbour distance it measures. Only speed depends
 /// on them. The estimate builds a k-d tree over the subsample once per index, and a tiled run
 /// on a real scan under a small budget builds hundreds of indexes (halo growth): at 16 384 and
@@ -1030,6 +1051,27 @@ mod tests {
         assert!(work.tree_queries * 100 < work.queries, "{work:?}");
         assert!(work.levels >= 2, "the cluster refines: {work:?}");
         assert_oracle(&pts, crate::denoise::origin_of(&pts), &nb, 16, 3);
+    }
+
+    /// The trial that chooses the first level's cell predicts the pass: over every point of a
+    /// one-level cloud with sparse scatter above a surface, the queries it leaves to the tree
+    /// are exactly those the pass leaves.
+    #[test]
+    fn tree_bound_counts_the_queries_the_pass_leaves_to_the_tree() {
+        let mut r = Rng(5);
+        let mut pts = surface(6000, 7);
+        for _ in 0..400 {
+            pts.push(DVec3::new(r.f() * 10.0, r.f() * 10.0, 2.0 + r.f() * 8.0));
+        }
+        let index = KnnIndex::build(&pts, DVec3::ZERO).unwrap();
+        let base = index.base_level(16).unwrap();
+        let all: Vec<u32> = (0..pts.len() as u32).collect();
+        let predicted = base.tree_bound(&index.local, &all, 16);
+        let (nb, _, work) = index.knn_from(&base, 16, None).unwrap();
+        assert_eq!(work.levels, 1, "{work:?}");
+        assert!(work.tree_queries >= 300, "{work:?}");
+        assert_eq!(predicted as u64, work.tree_queries);
+        assert_oracle(&pts, DVec3::ZERO, &nb, 16, 13);
     }
 
     /// A stack of many coincident points costs one block scan, not one per copy; each copy's
