@@ -10,8 +10,9 @@
 //! goes to the k-d tree, so the answer is exactly the brute-force one whatever the cell size.
 //!
 //! ```text
-//!   level 0: cell c₀ ≈ 1.5 × median k-NN radius (from a sample; area-weighted when a trial
-//!                                              leaves ≥ 1/8 of it to the tree)
+//!   level 0: cell c₀ ≈ 1.5 × median k-NN radius (extrapolated from a sample, checked by a
+//!            trial of 257 probes: measured when the sample was off, area-weighted when ≥ 1/8
+//!            of the probes would go to the tree)
 //!   ┌───┬───┬───┐
 //!   │   │   │   │   candidates of every query in the centre cell = the 27 cells around it;
 //!   ├───┼───┼───┤   exact when the k-th distance < c + distance from the query to its own
@@ -512,12 +513,13 @@ impl BaseLevel {
         BaseLevel(Level::build(local, ids, cell, ties))
     }
 
-    /// How many of the `probes` (indices into `local`, points of this level) a pass with lists
-    /// of `k` would leave to the k-d tree at this level: those whose k-th distance the 3 × 3 × 3
-    /// block cannot prove, nor the 5 × 5 × 5 block (skipped, as in the pass, when it holds more
-    /// than [`RING2_LOAD_PER_K`] · k candidates). A probe in a dense cell counts as answered (a
-    /// finer level takes it). Only k-th distances are measured, so ties do not matter.
-    pub(crate) fn tree_bound(&self, local: &[[f64; 3]], probes: &[u32], k: usize) -> usize {
+    /// What a pass with lists of `k` would do with the `probes` (indices into `local`, points of
+    /// this level) at this level: a probe is answered when the 3 × 3 × 3 block proves its k-th
+    /// distance, or the 5 × 5 × 5 block does (skipped, as in the pass, when it holds more than
+    /// [`RING2_LOAD_PER_K`] · k candidates); otherwise it goes to the k-d tree. A probe in a dense
+    /// cell counts as answered (a finer level takes it). Only k-th distances are measured, so
+    /// ties do not matter.
+    pub(crate) fn trial(&self, local: &[[f64; 3]], probes: &[u32], k: usize) -> Trial {
         let level = &self.0;
         let me = level.ancestor();
         let mut d: Vec<f64> = Vec::new();
@@ -525,35 +527,51 @@ impl BaseLevel {
         let add = |d: &mut Vec<f64>, q: [f64; 3], a: usize, b: usize| {
             d.extend((a..b).map(|j| dist2(q, level.point(j))));
         };
+        // The k-th distance when the block proves it.
         let proved = |d: &mut Vec<f64>, q: [f64; 3], ring: i64| {
             if d.len() < k {
-                return false;
+                return None;
             }
             let (_, &mut dk, _) = d.select_nth_unstable_by(k - 1, f64::total_cmp);
             let reach = me.reach(q, ring);
-            reach > 0.0 && dk < reach * reach
+            (reach > 0.0 && dk < reach * reach).then(|| dk.sqrt())
         };
-        probes
-            .iter()
-            .filter(|&&i| {
-                let q = local[i as usize];
-                let c = level.coord(q);
-                d.clear();
-                let ring1 = level.for_cells(c, 0, 1, &mut lookups, |a, b| {
-                    add(&mut d, q, a, b);
-                    d.len() <= DENSE_LOAD_PER_K * k
-                });
-                if !ring1 || proved(&mut d, q, 1) {
-                    return false;
-                }
-                let ring2 = level.for_cells(c, 2, 2, &mut lookups, |a, b| {
-                    add(&mut d, q, a, b);
-                    d.len() <= RING2_LOAD_PER_K * k
-                });
-                !ring2 || !proved(&mut d, q, 2)
-            })
-            .count()
+        let mut out = Trial::default();
+        for &i in probes {
+            let q = local[i as usize];
+            let c = level.coord(q);
+            d.clear();
+            let ring1 = level.for_cells(c, 0, 1, &mut lookups, |a, b| {
+                add(&mut d, q, a, b);
+                d.len() <= DENSE_LOAD_PER_K * k
+            });
+            let kth = if !ring1 {
+                Some(0.0)
+            } else {
+                proved(&mut d, q, 1).or_else(|| {
+                    let ring2 = level.for_cells(c, 2, 2, &mut lookups, |a, b| {
+                        add(&mut d, q, a, b);
+                        d.len() <= RING2_LOAD_PER_K * k
+                    });
+                    if ring2 { proved(&mut d, q, 2) } else { None }
+                })
+            };
+            out.tree += usize::from(kth.is_none());
+            out.kth.push(kth.unwrap_or(f64::INFINITY));
+        }
+        out.kth.sort_by(f64::total_cmp);
+        out
     }
+}
+
+/// What [`BaseLevel::trial`] found.
+#[derive(Debug, Clone, Default)]
+pub(crate) struct Trial {
+    /// Probes the pass would leave to the k-d tree.
+    pub tree: usize,
+    /// Each probe's k-th neighbour distance, ascending: exact where the level proves it, 0 in a
+    /// dense cell (below the level's scale), infinite where the probe goes to the tree.
+    pub kth: Vec<f64>,
 }
 
 /// Runs the grid levels over the points of `base` (indices into `local`), starting with `base`
