@@ -482,7 +482,8 @@ impl KnnIndex {
     ///   volumetric clutter) that comes out too small, and a block then holds about one query:
     ///   one gather per query instead of one per dozen.
     ///
-    /// The choice is cached for the first `k` asked (the rounds of `knn_near` ask it again).    ///
+    /// The choice is cached for the first `k` asked (the rounds of `knn_near` ask it again).
+    ///
     /// # Errors
     /// [`NeighboursError::ZeroK`], [`NeighboursError::TooFewPoints`] when fewer than `k` points
     /// are indexed.
@@ -692,8 +693,8 @@ const TREE_SHARE: usize = 8;
 /// See [`cell_radii`].
 const WEIGHT_CAP: f64 = 8.0;
 
-/// Points of the subsample [`KnnIndex::estimate_cells`] estimates the grid's cell from (at most about
-/// this many), and of its points whose k-th neighbour distance it measures. Only speed depends
+/// Points of the subsample [`KnnIndex::estimate_cells`] estimates the grid's cells from (at
+/// most about this many), and of its points whose k-th neighbour distance it measures. Only speed depends
 /// on them. The estimate builds a k-d tree over the subsample once per index, and a tiled run
 /// on a real scan under a small budget builds hundreds of indexes (halo growth): at 16 384 and
 /// 1024 the estimates were 9 % of `lone-star.copc.laz`'s CPU at 32 MiB (perf), and 4096 and
@@ -1077,7 +1078,7 @@ mod tests {
     /// one-level cloud with sparse scatter above a surface, the queries it leaves to the tree
     /// are exactly those the pass leaves.
     #[test]
-    fn tree_bound_counts_the_queries_the_pass_leaves_to_the_tree() {
+    fn the_trial_counts_the_queries_the_pass_leaves_to_the_tree() {
         let mut r = Rng(5);
         let mut pts = surface(6000, 7);
         for _ in 0..400 {
