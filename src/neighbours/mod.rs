@@ -497,12 +497,9 @@ impl KnnIndex {
                 k,
             });
         }
-        let ids = || -> Vec<u32> {
-            (0..self.local.len() as u32)
-                .filter(|&i| indexable(self.local[i as usize]))
-                .collect()
-        };
-        let build = |cell: f64| grid::BaseLevel::build(&self.local, ids(), cell, self.ties());
+        let ids = || (0..self.local.len() as u32).filter(|&i| indexable(self.local[i as usize]));
+        let build =
+            |cell: f64| grid::BaseLevel::build(&self.local, ids().collect(), cell, self.ties());
         if let Some(&(at, cell)) = self.cell.get()
             && at == k
         {
@@ -516,9 +513,8 @@ impl KnnIndex {
         let try_weighted = weighted > WEIGHTED_LARGER * plain;
         let mut cell = plain;
         if extrapolated || try_weighted {
-            let all = ids();
-            let step = (all.len() / CELL_PROBES).max(1);
-            let probes: Vec<u32> = all.into_iter().step_by(step).collect();
+            let step = (self.indexed / CELL_PROBES).max(1);
+            let probes: Vec<u32> = ids().step_by(step).collect();
             let trial = base.trial(&self.local, &probes, k);
             let measured = 1.5 * trial.kth[trial.kth.len() / 2];
             if try_weighted && trial.tree * TREE_SHARE >= probes.len() {
