@@ -1108,17 +1108,15 @@ fn select_wide(blk: &mut Block, k: usize, t: f64) -> f64 {
 
 #[cfg(test)]
 mod tests {
+    use rand::{RngExt, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
     use super::*;
 
     /// A noisy cluster, a sparse scatter and duplicate stacks, from a fixed seed.
     fn cloud(n: usize, far: f64) -> Vec<[f64; 3]> {
-        let mut x = 0x9e37_79b9_7f4a_7c15u64;
-        let mut f = move || {
-            x ^= x << 13;
-            x ^= x >> 7;
-            x ^= x << 17;
-            (x >> 11) as f64 / (1u64 << 53) as f64
-        };
+        let mut rng = ChaCha8Rng::seed_from_u64(16);
+        let mut f = move || rng.random::<f64>();
         let mut pts: Vec<[f64; 3]> = (0..n)
             .map(|i| match i % 5 {
                 0 => [f() * 10.0, f() * 10.0, f() * 10.0],
