@@ -253,6 +253,7 @@ fn guarded_stages(c: &mut Criterion) {
         classes: &classes,
         noise: &noise,
         bound: &bound,
+        radii: &radii,
         max_move: None,
     };
     // The first update of a cycle: `&mut None` has its gains computed.

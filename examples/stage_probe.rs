@@ -153,6 +153,7 @@ fn main() -> anyhow::Result<()> {
         classes: &classes,
         noise: &noise,
         bound: &bound,
+        radii: &radii,
         max_move: None,
     };
     time("update", &mut || {

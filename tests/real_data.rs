@@ -138,8 +138,9 @@ fn tiled_equals_in_memory_on_real_scans() {
 
 /// Issue 9: the default operator does no harm on real scans: no point of any class moves more
 /// than 0.6 of its own 16-NN radius, and the 99th percentile of every class with at least 100
-/// points stays at or below 0.35 (the protocol's goal is 0.3; docs/quality/real-scans.md has the
-/// figures per class).
+/// points stays at or below 0.3: the protocol's goals (docs/quality/real-scans.md has the figures
+/// per class). The operator caps every move at a quarter of the point's r16
+/// (`guarded::REACH`); what the written coordinates' rounding adds comes on top.
 #[test]
 #[ignore = "needs ../shared"]
 fn issue9_default_does_no_harm_on_real_scans() {
@@ -166,7 +167,7 @@ fn issue9_default_does_no_harm_on_real_scans() {
             );
             if r.count >= 100 {
                 assert!(
-                    r.relative.p99 <= 0.35,
+                    r.relative.p99 <= 0.3,
                     "{name}: class {} p99 {:.3} × r16",
                     r.name,
                     r.relative.p99

@@ -254,6 +254,27 @@ fn issue9_radius_caps_lists_any_tile_size() {
     assert!(s.moved > 400, "moved {} of 4000", s.moved);
 }
 
+/// The cap of every move at a quarter of the point's own k-NN radius (`guarded::REACH`) reads
+/// the point's list as every tile has it: on a plane whose noise is half its spacing, where the
+/// cap holds the largest moves, the tiled bytes are the in-memory bytes.
+#[test]
+fn issue9_reach_cap_any_tile_size() {
+    let d = tempfile::tempdir().unwrap();
+    let mut r = Rng(99);
+    let mut pts = Vec::new();
+    for i in 0..60 {
+        for j in 0..60 {
+            let (dx, dy, dz) = (0.2 * r.g(), 0.2 * r.g(), 0.5 * r.g());
+            pts.push(DVec3::new(i as f64 + dx, j as f64 + dy, dz));
+        }
+    }
+    let input = write(d.path(), "reach.ply", pts);
+    let reports = assert_seamless(&input, &job(Params::default()), SIZES);
+    let s = &reports[0].stats;
+    assert!(s.moved > 1000, "moved {} of 3600", s.moved);
+    assert!(s.bounded > 20, "bounded {} of 3600", s.bounded);
+}
+
 /// `--classes`: points of other classes keep their position in every tile, as in memory, and
 /// the tiled bytes are the in-memory bytes.
 #[test]

@@ -845,6 +845,7 @@ fn run_on(
                 classes: &classes,
                 noise: &noise,
                 bound: &bound,
+                radii: &radii,
                 max_move: params.max_move,
             };
             let mut gain = None;
@@ -1494,6 +1495,43 @@ mod tests {
         .unwrap();
         assert!(short.stats.moved > 3000, "{}", short.stats.moved);
         assert_ne!(short.positions, two.positions);
+    }
+
+    /// Issue 9, do no harm on a scan as it is: on a plane whose noise is half its spacing (the
+    /// noise bound alone let the 99th percentile of the moves reach 0.36 × r16 there), no point
+    /// moves more than [`guarded::REACH`] times its own 16-NN radius in the input (brute force),
+    /// and the cap is what holds the largest moves.
+    #[test]
+    fn issue9_no_point_moves_past_a_quarter_of_its_own_r16() {
+        use rand::{RngExt, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(9);
+        let mut gauss = move || {
+            let (u, v) = (1.0 - rng.random::<f64>(), rng.random::<f64>());
+            (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()
+        };
+        let mut pts = Vec::new();
+        for i in 0..60 {
+            for j in 0..60 {
+                let (dx, dy, dz) = (0.2 * gauss(), 0.2 * gauss(), 0.5 * gauss());
+                pts.push(DVec3::new(i as f64 + dx, j as f64 + dy, dz));
+            }
+        }
+        let r = run_all(&pts, &Params::default()).unwrap();
+        let (mut moved, mut at_cap, mut worst) = (0, 0, 0.0f64);
+        for (p, q) in pts.iter().zip(&r.positions) {
+            let list = crate::neighbours::brute::knn(&pts, *p, 16);
+            let r16 = (pts[*list.last().unwrap() as usize] - *p).length();
+            let d = (*q - *p).length() / r16;
+            worst = worst.max(d);
+            moved += usize::from(d > 0.0);
+            at_cap += usize::from(d > 0.999 * guarded::REACH);
+        }
+        assert!(
+            worst <= guarded::REACH * (1.0 + 1e-12),
+            "a point moved {worst} × r16"
+        );
+        assert!(moved > 1000, "{moved} points moved");
+        assert!(at_cap > 20, "{at_cap} points at the cap");
     }
 
     /// Issue 9: `--classes`. Held points keep their input position bit for bit, and still serve
