@@ -201,7 +201,8 @@ pub struct SpecOverlay {
     #[serde(skip_serializing_if = "Option::is_none")]
     pub guard: Option<bool>,
     /// Hard cap on any point's displacement, in the input's units (metres for LiDAR). Default:
-    /// none beyond the operator's own bound of 3 × the local noise (1 × at edges and lines).
+    /// none beyond the guarded operator's own bounds: 3 × the local noise (1 × at edges and
+    /// lines) and 0.25 × the point's own k-NN radius.
     #[cfg_attr(feature = "cli", arg(long, value_name = "DISTANCE"))]
     #[serde(skip_serializing_if = "Option::is_none")]
     pub max_move: Option<f64>,
