@@ -255,8 +255,9 @@ fn issue9_radius_caps_lists_any_tile_size() {
 }
 
 /// The cap of every move at a quarter of the point's own k-NN radius (`guarded::REACH`) reads
-/// the point's list as every tile has it: on a plane whose noise is half its spacing, where the
-/// cap holds the largest moves, the tiled bytes are the in-memory bytes.
+/// the point's list as every tile has it: on a plane whose noise is half its spacing (the kind
+/// of cloud on which the cap's unit test in `denoise::cloud` finds it holding the largest
+/// moves), the tiled bytes are the in-memory bytes.
 #[test]
 fn issue9_reach_cap_any_tile_size() {
     let d = tempfile::tempdir().unwrap();
