@@ -477,8 +477,9 @@ fn sort_packed(
     let mut runs = Vec::new();
     for (pos, &e) in packed.iter().enumerate() {
         let cell = e >> 41;
-        let (x, y, z) = (cell >> (2 * A), (cell >> A) & mask, cell & mask);
-        extend_runs(&mut runs, pos, x << (2 * AXIS_BITS) | y << AXIS_BITS | z);
+        let c = [cell >> (2 * A), (cell >> A) & mask, cell & mask].map(|v| v as i64);
+        // The level's own key of the cell (every coordinate fits: 29 bits < AXIS_BITS).
+        extend_runs(&mut runs, pos, level.key(c).unwrap_or(u128::MAX));
     }
     let sorted = packed.par_iter().map(|&e| e as u32).collect();
     Some((runs, sorted))
