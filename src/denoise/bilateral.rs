@@ -14,7 +14,7 @@ use rayon::prelude::*;
 use super::common::{mean_edge_length, merge_step};
 use super::normals::vertex_normals;
 use super::{DenoiseError, NormalWeighting, Output, Params, Stats, Timer, origin_of};
-use crate::geometry::ExactSum;
+use crate::geometry::{ExactSum, exp};
 use crate::neighbours::{KnnIndex, MeshAdjacency, Neighbourhoods};
 use crate::points::Faces;
 
@@ -53,7 +53,7 @@ fn offset(
     let ss2 = var.max(1e-12 * sc2);
     let (mut sw, mut swh) = (0.0, 0.0);
     for &(t2, h) in buf.iter() {
-        let w = (-t2 / (2.0 * sc2)).exp() * (-h * h / (2.0 * ss2)).exp();
+        let w = exp(-t2 / (2.0 * sc2)) * exp(-h * h / (2.0 * ss2));
         sw += w;
         swh += w * h;
     }

@@ -32,7 +32,7 @@ use rayon::prelude::*;
 use super::common::{FaceTopology, mean_edge_length, merge_step, stay};
 use super::normals::{face_cross, vertex_normals};
 use super::{DenoiseError, NormalWeighting, Output, Params, Stats, Timer};
-use crate::geometry::{ExactSum, Quadric};
+use crate::geometry::{ExactSum, Quadric, exp};
 use crate::neighbours::MeshAdjacency;
 use crate::points::Faces;
 
@@ -102,8 +102,8 @@ pub fn filter_normals(
                 let mut s = DVec3::ZERO;
                 for &g in topo.neighbours_of(f) {
                     let g = g as usize;
-                    let ws = (-(centroids[f] - centroids[g]).length_squared() / ss2).exp();
-                    let wr = (-(n[f] - n[g]).length_squared() / sr2).exp();
+                    let ws = exp(-(centroids[f] - centroids[g]).length_squared() / ss2);
+                    let wr = exp(-(n[f] - n[g]).length_squared() / sr2);
                     s += n[g] * (areas[g] * ws * wr);
                 }
                 let s = s.normalize_or_zero();

@@ -35,7 +35,7 @@ use super::Params;
 use super::common::stay;
 use super::qem::bent_normal;
 use super::structure::{LocalFit, Structure};
-use crate::geometry::{Quadric, SymMat3};
+use crate::geometry::{Quadric, SymMat3, exp};
 use crate::neighbours::Neighbourhoods;
 
 /// Width of the agreement weight in units of the voter's noise scale.
@@ -118,7 +118,7 @@ fn agree(r: f64, s: f64) -> f64 {
         return 1.0;
     }
     let t = r / (AGREE * s);
-    (-0.5 * t * t).exp()
+    exp(-0.5 * t * t)
 }
 
 /// The robust quadric of point `i` (relative to its position).

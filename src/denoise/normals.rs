@@ -5,7 +5,7 @@ use rayon::prelude::*;
 
 use super::NormalWeighting;
 use super::common::{Within, median};
-use crate::geometry::pca_normal;
+use crate::geometry::{exp, pca_normal};
 use crate::neighbours::Neighbourhoods;
 use crate::points::Faces;
 
@@ -201,11 +201,11 @@ pub fn filter_point_normals_within(
     n
 }
 
-/// `exp(x)`, with `x = ±0` (a point against itself, equal normals) answered without the call:
+/// [`exp`]`(x)`, with `x = ±0` (a point against itself, equal normals) answered without the call:
 /// `exp(±0) = 1` exactly, so the result is the same bits.
 #[inline]
 fn gauss(x: f64) -> f64 {
-    if x == 0.0 { 1.0 } else { x.exp() }
+    if x == 0.0 { 1.0 } else { exp(x) }
 }
 
 /// Points per block of the parallel passes over lists.
@@ -282,7 +282,7 @@ mod tests {
                 lists
                     .get(i)
                     .iter()
-                    .map(move |&u| (-(pos[i] - pos[u as usize]).length_squared() / ss2).exp())
+                    .map(move |&u| exp(-(pos[i] - pos[u as usize]).length_squared() / ss2))
             })
             .collect();
         let range: Vec<f64> = (0..pos.len())
@@ -322,7 +322,7 @@ mod tests {
                         if nu == DVec3::ZERO {
                             continue;
                         }
-                        let wr = (-(ni - nu).length_squared() / range[i]).exp();
+                        let wr = exp(-(ni - nu).length_squared() / range[i]);
                         s += nu * (w * wr);
                     }
                     let s = s.normalize_or_zero();

@@ -9,7 +9,8 @@
 //!   `robust` truncated pseudo-inverse, or a `regularised` minimiser that bounds the step.
 //! * [`pca_fit`] gives a neighbourhood's principal axes; [`pca_normal`] its plane (smallest
 //!   eigenvector of the centred covariance).
-//! * [`floor_i64`] keys a coordinate to its cell without a libm call.
+//! * [`floor_i64`] keys a coordinate to its cell without a libm call; [`exp`] is `eˣ` without
+//!   one, the same bits on every platform (the operators' Gaussian weights).
 //! * [`ExactSum`] adds f64 values without rounding, so global means are the same bits whatever the
 //!   order or grouping of the terms (tiles, threads).
 //!
@@ -19,10 +20,12 @@
 
 mod cell;
 mod eigen;
+mod exp;
 mod sum;
 
 pub use cell::floor_i64;
 pub use eigen::{Eigen, SymMat3, any_orthogonal};
+pub use exp::exp;
 pub use sum::ExactSum;
 
 use glam::DVec3;
