@@ -219,6 +219,75 @@ impl Schema {
         self.set_f64(record, self.xyz[1], p.y);
         self.set_f64(record, self.xyz[2], p.z);
     }
+
+    /// Stores `p` into the x, y and z fields of `record`, which hold the point's input position,
+    /// rounded as `rounding` says.
+    pub fn move_position(&self, record: &mut [u8], p: DVec3, rounding: Rounding) {
+        let from = self.position(record).to_array();
+        let tys = self.xyz.map(|i| self.fields[i].ty);
+        let stored = rounding.store(p.to_array(), from, [1.0; 3], |k, v, towards| {
+            stored_toward(v, towards, tys[k])
+        });
+        for (k, v) in stored.into_iter().enumerate() {
+            self.set_f64(record, self.xyz[k], v);
+        }
+    }
+}
+
+/// How a sink rounds a moved point's coordinates to the values its output stores.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub enum Rounding {
+    /// Each coordinate to the nearest stored value: what `qemd noise` and conversions write.
+    #[default]
+    Nearest,
+    /// The stored move never longer than the computed one ([`store_move`]): what a denoising run
+    /// writes, so that the bounds it put on every move hold in the file.
+    NoLonger,
+}
+
+impl Rounding {
+    /// What a point moved from `from` to `v` stores; `unit` and `round` as [`store_move`] takes
+    /// them.
+    pub fn store(
+        self,
+        v: [f64; 3],
+        from: [f64; 3],
+        unit: [f64; 3],
+        round: impl Fn(usize, f64, f64) -> f64,
+    ) -> [f64; 3] {
+        match self {
+            Rounding::Nearest => std::array::from_fn(|k| round(k, v[k], v[k])),
+            Rounding::NoLonger => store_move(v, from, unit, round),
+        }
+    }
+}
+
+/// What a point moved from `from` to `v` stores, given `round(axis, value, towards)` (the value
+/// of the axis's storage next to `value` on `towards`' side, the nearest when `towards` is
+/// `value`): every coordinate to nearest, unless that makes the stored move longer than the
+/// computed one (`unit` turns each axis's storage units into lengths); then every coordinate
+/// towards `from`. So the stored move is never longer than the computed one, and every bound the
+/// operator put on a move (a quarter of the point's k-NN radius, the noise bound, `--max-move`)
+/// holds in the file, on coarse storage too (float32 UTM coordinates are 0.5 m apart near
+/// 5·10⁶ m; LAS scales of 1 cm), while a move that rounding does not lengthen keeps the nearest
+/// value. Unmoved points store `from`.
+pub fn store_move(
+    v: [f64; 3],
+    from: [f64; 3],
+    unit: [f64; 3],
+    round: impl Fn(usize, f64, f64) -> f64,
+) -> [f64; 3] {
+    let near: [f64; 3] = std::array::from_fn(|k| round(k, v[k], v[k]));
+    let len2 = |p: &[f64; 3]| {
+        (0..3)
+            .map(|k| ((p[k] - from[k]) * unit[k]).powi(2))
+            .sum::<f64>()
+    };
+    if len2(&near) <= len2(&v) {
+        near
+    } else {
+        std::array::from_fn(|k| round(k, v[k], from[k]))
+    }
 }
 
 /// Decodes one scalar of type `ty` from exactly `ty.size()` bytes.
@@ -243,6 +312,40 @@ pub fn read_scalar(b: &[u8], ty: ScalarType, endian: Endian) -> f64 {
         ScalarType::U64 => rd!(u64),
         ScalarType::F32 => rd!(f32),
         ScalarType::F64 => rd!(f64),
+    }
+}
+
+/// Of the two values of type `ty` around `v`, the one on `from`'s side (`v` itself when `ty`
+/// holds it; the nearest when `from` equals `v` or is NaN): a coordinate moved from `from` to
+/// `v` stored this way moves no farther than computed ([`store_move`]). Integer types then
+/// saturate as [`write_scalar`] does.
+pub fn stored_toward(v: f64, from: f64, ty: ScalarType) -> f64 {
+    match ty {
+        ScalarType::F64 => v,
+        ScalarType::F32 => {
+            let q = v as f32;
+            let qd = f64::from(q);
+            if from < v && qd > v {
+                f64::from(q.next_down())
+            } else if from > v && qd < v {
+                f64::from(q.next_up())
+            } else {
+                qd
+            }
+        }
+        _ => integer_toward(v, from),
+    }
+}
+
+/// The integer next to `v` on `from`'s side (nearest when `from` equals `v` or is NaN); see
+/// [`stored_toward`]. Scaled-integer formats (LAS) apply it to `(v − offset) / scale`.
+pub fn integer_toward(v: f64, from: f64) -> f64 {
+    if from < v {
+        v.floor()
+    } else if from > v {
+        v.ceil()
+    } else {
+        v.round()
     }
 }
 
@@ -651,5 +754,73 @@ mod tests {
         assert_eq!(b.min, DVec3::new(-1.0, 2.0, 0.0));
         assert_eq!(b.max, DVec3::new(1.0, 5.0, 3.0));
         assert!(Aabb::empty().is_empty());
+    }
+
+    proptest::proptest! {
+        /// Float32 storage: a stored move is never longer than the computed one, each stored
+        /// coordinate is one of the two float32 values around the computed one, and to-nearest
+        /// rounding is what `as f32` gives.
+        #[test]
+        fn no_longer_moves_in_float32(
+            base in (-6e6f64..6e6, -6e6f64..6e6, -1e3f64..1e3),
+            step in (-2.0f64..2.0, -2.0f64..2.0, -2.0f64..2.0),
+        ) {
+            let from = [base.0, base.1, base.2].map(|c| f64::from(c as f32));
+            let v = [from[0] + step.0, from[1] + step.1, from[2] + step.2];
+            let round = |_: usize, x: f64, t: f64| stored_toward(x, t, ScalarType::F32);
+            let len = |p: [f64; 3]| (0..3).map(|k| (p[k] - from[k]).powi(2)).sum::<f64>();
+            let stored = Rounding::NoLonger.store(v, from, [1.0; 3], round);
+            proptest::prop_assert!(len(stored) <= len(v));
+            for k in 0..3 {
+                let q = stored[k] as f32;
+                proptest::prop_assert_eq!(f64::from(q), stored[k]);
+                proptest::prop_assert!(q.next_down() as f64 <= v[k] && v[k] <= q.next_up() as f64);
+            }
+            let near = Rounding::Nearest.store(v, from, [1.0; 3], round);
+            proptest::prop_assert_eq!(near, v.map(|x| f64::from(x as f32)));
+        }
+
+        /// Scaled integers (LAS): the same, in metres through the scale.
+        #[test]
+        fn no_longer_moves_in_scaled_integers(
+            from in (-1_000_000i32..1_000_000, -1_000_000i32..1_000_000, -1000i32..1000),
+            step in (-50.0f64..50.0, -50.0f64..50.0, -50.0f64..50.0),
+            scale in 0.0001f64..0.1,
+        ) {
+            let from = [from.0, from.1, from.2].map(f64::from);
+            let v = [from[0] + step.0, from[1] + step.1, from[2] + step.2];
+            let unit = [scale, scale, 2.0 * scale];
+            let len = |p: [f64; 3]| (0..3).map(|k| ((p[k] - from[k]) * unit[k]).powi(2)).sum::<f64>();
+            let stored = Rounding::NoLonger.store(v, from, unit, |_, x, t| integer_toward(x, t));
+            proptest::prop_assert!(len(stored) <= len(v));
+            for k in 0..3 {
+                proptest::prop_assert_eq!(stored[k].fract(), 0.0);
+                proptest::prop_assert!((stored[k] - v[k]).abs() < 1.0);
+            }
+        }
+    }
+
+    #[test]
+    fn unmoved_and_special_values_store_as_they_were() {
+        let from = [512_000.031_25, 5_123_000.5, 210.25];
+        let round = |_: usize, x: f64, t: f64| stored_toward(x, t, ScalarType::F32);
+        assert_eq!(Rounding::NoLonger.store(from, from, [1.0; 3], round), from);
+        let nan = [f64::NAN; 3];
+        assert!(
+            Rounding::NoLonger
+                .store(nan, nan, [1.0; 3], round)
+                .iter()
+                .all(|x| x.is_nan())
+        );
+        // Past float32's range: the largest float, never infinity, on the input's side.
+        assert_eq!(
+            stored_toward(1e39, 0.0, ScalarType::F32),
+            f64::from(f32::MAX)
+        );
+        assert_eq!(integer_toward(2.5, 2.5), 3.0);
+        assert_eq!(integer_toward(2.7, 0.0), 2.0);
+        assert_eq!(integer_toward(-2.7, 0.0), -2.0);
+        assert_eq!(stored_toward(-2.7, 0.0, ScalarType::I16), -2.0);
+        assert_eq!(stored_toward(0.1, 0.0, ScalarType::F64), 0.1);
     }
 }

@@ -10,7 +10,7 @@ use glam::DVec3;
 use las::point::Format as PointFormat;
 use las::{Builder, Transform, Vector};
 use qem_denoise::io::ply::{PlyEncoding, PlyType};
-use qem_denoise::io::{self, Cloud, Format, IoError, Meta, SinkOptions};
+use qem_denoise::io::{self, Cloud, Format, IoError, Meta, Rounding, SinkOptions};
 use qem_denoise::points::{Endian, FLAG_NOISE, PointBatch, ScalarType, write_scalar};
 
 const NOISE: SinkOptions = SinkOptions {
@@ -18,6 +18,7 @@ const NOISE: SinkOptions = SinkOptions {
     normals: false,
     temp_dir: None,
     body: false,
+    rounding: Rounding::Nearest,
 };
 
 // ---------------------------------------------------------------------------------------------

@@ -31,6 +31,7 @@ mod scaleout;
 mod seams;
 mod server;
 mod slurm;
+mod stored_moves;
 mod streams;
 mod table;
 mod tempdir;

@@ -112,6 +112,7 @@ use std::path::{Path, PathBuf};
 use glam::DVec3;
 use thiserror::Error;
 
+pub use crate::points::Rounding;
 use crate::points::{Faces, PointBatch, PointNormal, ScalarType, Schema};
 
 /// Errors of the I/O layer. Each names the file it is about.
@@ -700,6 +701,11 @@ pub struct SinkOptions {
     pub temp_dir: Option<PathBuf>,
     /// Write a body: the records alone, for [`Sink::append_body`] (see [`Sink`]'s bodies).
     pub body: bool,
+    /// How a moved point's coordinates round to the values the output stores: to nearest by
+    /// default; a denoising run asks [`Rounding::NoLonger`], so that no stored move is longer
+    /// than the computed one (E57 stores coordinates as doubles, OBJ and OFF as text of the
+    /// full value: nothing to round).
+    pub rounding: Rounding,
 }
 
 /// Creates a sink at `path` that writes `count` points laid out like `like`. The format comes from
@@ -786,9 +792,13 @@ pub fn create_in(
             count,
             options,
         )?),
-        Format::Kitti | Format::Nuscenes | Format::Bin(_) => {
-            Box::new(raw::RawSink::new(out, format, like, count)?)
-        }
+        Format::Kitti | Format::Nuscenes | Format::Bin(_) => Box::new(raw::RawSink::new(
+            out,
+            format,
+            like,
+            count,
+            options.rounding,
+        )?),
         Format::Pcd => Box::new(pcd::PcdSink::new(out, like, count, options)?),
         Format::Las => Box::new(las::LasSink::new(out, like, count, options, false)?),
         Format::Laz => Box::new(las::LasSink::new(out, like, count, options, true)?),

@@ -37,7 +37,7 @@ use super::tally::{Tally, check_batch};
 use super::{
     AtomicFile, BodyStats, Extras, Format, Input, IoError, Meta, Sink, Source, SourceInfo,
 };
-use crate::points::{Endian, PointBatch, ScalarType, Schema};
+use crate::points::{Endian, PointBatch, Rounding, ScalarType, Schema, stored_toward};
 
 /// Bytes per KITTI record.
 pub const RECORD_LEN: usize = 16;
@@ -385,6 +385,8 @@ pub struct RawSink {
     like: Schema,
     raw: Schema,
     layout: Layout,
+    /// How moved coordinates round to what the output stores ([`SinkOptions::rounding`]).
+    rounding: Rounding,
     tally: Tally,
     buf: Vec<u8>,
 }
@@ -411,7 +413,13 @@ impl RawSink {
         like: &SourceInfo,
         count: u64,
     ) -> Result<RawSink, IoError> {
-        RawSink::new(AtomicFile::create(path)?, format, like, count)
+        RawSink::new(
+            AtomicFile::create(path)?,
+            format,
+            like,
+            count,
+            Rounding::Nearest,
+        )
     }
 
     /// [`RawSink::create_as`] writing to `out` (a file, a stream or memory).
@@ -423,6 +431,7 @@ impl RawSink {
         format: Format,
         like: &SourceInfo,
         count: u64,
+        rounding: Rounding,
     ) -> Result<RawSink, IoError> {
         let layout = format
             .bin_layout()
@@ -449,6 +458,7 @@ impl RawSink {
             like: like.schema.clone(),
             raw,
             layout,
+            rounding,
             tally: Tally::new(count),
             buf: Vec::new(),
         })
@@ -468,13 +478,15 @@ impl Sink for RawSink {
                 Layout::Same => {
                     self.buf.extend_from_slice(batch.record(i));
                     let rec = &mut self.buf[start..];
-                    let old = k.position(rec);
-                    for (axis, (new, old)) in [(p.x, old.x), (p.y, old.y), (p.z, old.z)]
-                        .into_iter()
-                        .enumerate()
-                    {
-                        if new.to_bits() != old.to_bits() {
-                            k.set_f64(rec, k.xyz[axis], new);
+                    let old = k.position(rec).to_array();
+                    let new = p.to_array();
+                    let tys = k.xyz.map(|f| k.fields[f].ty);
+                    let stored = self.rounding.store(new, old, [1.0; 3], |a, v, towards| {
+                        stored_toward(v, towards, tys[a])
+                    });
+                    for axis in 0..3 {
+                        if new[axis].to_bits() != old[axis].to_bits() {
+                            k.set_f64(rec, k.xyz[axis], stored[axis]);
                         }
                     }
                 }

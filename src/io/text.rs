@@ -55,7 +55,7 @@ use super::{
     AtomicFile, BodyStats, Extras, Format, Input, IoError, Meta, NOISE_FIELD, NormalField,
     NormalNames, Sink, SinkOptions, Source, SourceInfo, Trailer,
 };
-use crate::points::{FLAG_NOISE, PointBatch, ScalarType, Schema};
+use crate::points::{FLAG_NOISE, PointBatch, Rounding, ScalarType, Schema, stored_toward};
 
 /// Which of the two text point formats a [`TextSource`] or [`TextSink`] speaks.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -595,6 +595,8 @@ fn name_columns(header: &[u8], after_count: &[u8], n: usize, names: &[&str]) -> 
 /// x, y, z such as LAS's scaled `I32` are never rounded to whole units).
 pub struct TextSink {
     out: LineSink,
+    /// How moved coordinates round to what the output stores ([`SinkOptions::rounding`]).
+    rounding: Rounding,
     schema: Schema,
     coords: [ScalarType; 3],
     fields: Vec<usize>,
@@ -707,6 +709,7 @@ impl TextSink {
         }
         Ok(TextSink {
             out,
+            rounding: options.rounding,
             coords: coord_types(&schema),
             schema,
             fields,
@@ -727,7 +730,18 @@ impl Sink for TextSink {
         for (i, p) in batch.positions.iter().enumerate() {
             let rec = batch.record(i);
             self.line.clear();
-            for (k, v) in [p.x, p.y, p.z].into_iter().enumerate() {
+            // Coordinates print at their field's precision (`f32` ones as `f32`).
+            let coords = self.coords;
+            let stored = self.rounding.store(
+                p.to_array(),
+                self.schema.position(rec).to_array(),
+                [1.0; 3],
+                |k, v, towards| match coords[k] {
+                    ScalarType::F32 => stored_toward(v, towards, ScalarType::F32),
+                    _ => v,
+                },
+            );
+            for (k, v) in stored.into_iter().enumerate() {
                 if k > 0 {
                     self.line.extend_from_slice(sep);
                 }

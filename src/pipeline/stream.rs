@@ -3,7 +3,7 @@
 
 use super::{Job, OutlierMode, PipelineError, RunOptions};
 use crate::io::{self, BATCH, Extras, SinkOptions, Source};
-use crate::points::PointBatch;
+use crate::points::{PointBatch, Rounding};
 
 /// The sink options of `job`'s output.
 pub(crate) fn sink_options(job: &Job, opts: &RunOptions) -> SinkOptions {
@@ -12,6 +12,8 @@ pub(crate) fn sink_options(job: &Job, opts: &RunOptions) -> SinkOptions {
         normals: job.spec.params.write_normals,
         temp_dir: opts.temp_dir.clone(),
         body: false,
+        // The bounds the operator put on every move hold in the file.
+        rounding: Rounding::NoLonger,
     }
 }
 

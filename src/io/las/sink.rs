@@ -18,7 +18,9 @@ use crate::io::{
     AtomicFile, BodyStats, Extras, Format, IoError, Meta, NormalField, NormalNames, Sink,
     SinkOptions, SourceInfo, Trailer,
 };
-use crate::points::{Endian, FLAG_NOISE, PointBatch, ScalarType, Schema, write_scalar};
+use crate::points::{
+    Endian, FLAG_NOISE, PointBatch, Rounding, ScalarType, Schema, integer_toward, write_scalar,
+};
 
 /// Where the points go: straight to the file, or through a LAZ compressor.
 enum Out {
@@ -103,6 +105,8 @@ pub struct LasSink {
     /// Fill the legacy (32-bit) point counts.
     legacy: bool,
     noise: bool,
+    /// How moved coordinates round to what the output stores ([`SinkOptions::rounding`]).
+    rounding: Rounding,
     /// Where the written normals go.
     normals: Vec<NormalSlot>,
     /// Start of the waveform data packet record in the source (0 if none).
@@ -225,9 +229,9 @@ fn choose_frame(positions: &[DVec3]) -> Frame {
     }
 }
 
-/// Quantises coordinate `v` with `scale` and `offset`: `round((v − offset)/scale)`.
-fn quantise(v: f64, scale: f64, offset: f64) -> Option<i32> {
-    let q = ((v - offset) / scale).round();
+/// A quantised coordinate (an integer-valued `q`, `(v − offset) / scale` rounded) as LAS
+/// stores it; `None` when it is not finite or outside the 32-bit range.
+fn stored_i32(q: f64) -> Option<i32> {
     (q.is_finite() && q >= f64::from(i32::MIN) && q <= f64::from(i32::MAX)).then_some(q as i32)
 }
 
@@ -342,6 +346,7 @@ impl LasSink {
             like: like.schema.clone(),
             legacy,
             noise: options.noise_flag,
+            rounding: options.rounding,
             normals,
             source_waveform,
             tally: Tally::new(count),
@@ -651,15 +656,26 @@ impl Sink for LasSink {
                 }
             }
             let rec = &mut self.buf[start..start + rl];
-            for (axis, v) in p.to_array().into_iter().enumerate() {
-                let (s, o) = (frame.scale[axis], frame.offset[axis]);
-                let old = get_i32(rec, 4 * axis);
-                let keep = matches!(self.conv, Conv::Same)
-                    && (f64::from(old) * s + o).to_bits() == v.to_bits();
-                let q = if keep {
-                    old
-                } else {
-                    quantise(v, s, o).ok_or_else(|| {
+            let v = p.to_array();
+            let (s, o) = (frame.scale, frame.offset);
+            let t: [f64; 3] = std::array::from_fn(|k| (v[k] - o[k]) / s[k]);
+            let stored = if matches!(self.conv, Conv::Same) {
+                // The record holds the input's integers, in the same frame: an axis that did
+                // not move keeps its integer.
+                let old: [f64; 3] = std::array::from_fn(|k| f64::from(get_i32(rec, 4 * k)));
+                let at: [f64; 3] = std::array::from_fn(|k| {
+                    let kept = (old[k] * s[k] + o[k]).to_bits() == v[k].to_bits();
+                    if kept { old[k] } else { t[k] }
+                });
+                self.rounding
+                    .store(at, old, s, |_, x, towards| integer_toward(x, towards))
+            } else {
+                t.map(f64::round)
+            };
+            for (axis, &v) in v.iter().enumerate() {
+                let (s, o) = (s[axis], o[axis]);
+                let q = {
+                    stored_i32(stored[axis]).ok_or_else(|| {
                         let name = ["x", "y", "z"][axis];
                         IoError::invalid(
                             &self.target,
@@ -875,9 +891,12 @@ mod tests {
         assert_eq!(f.offset, [-1.0, 0.0, 0.0]);
         let f = choose_frame(&[DVec3::new(3.25, 4.0, 5.0)]);
         assert_eq!(f.scale, [0.001; 3]);
-        assert_eq!(quantise(1e300, 0.001, 0.0), None);
-        assert_eq!(quantise(f64::NAN, 0.001, 0.0), None);
-        assert_eq!(quantise(500_000.001, 0.001, 500_000.0), Some(1));
+        assert_eq!(stored_i32((1e300f64 / 0.001).round()), None);
+        assert_eq!(stored_i32(f64::NAN), None);
+        assert_eq!(
+            stored_i32(((500_000.001 - 500_000.0) / 0.001f64).round()),
+            Some(1)
+        );
     }
 
     #[test]

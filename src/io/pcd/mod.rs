@@ -88,7 +88,9 @@ use super::{
     AtomicFile, BodyStats, Extras, Format, Input, IoError, Meta, NormalField, NormalNames, Sink,
     SinkOptions, Source, SourceInfo, Trailer, foreign_field_type,
 };
-use crate::points::{Endian, FLAG_NOISE, Field, PointBatch, ScalarType, Schema};
+use crate::points::{
+    Endian, FLAG_NOISE, Field, PointBatch, Rounding, ScalarType, Schema, stored_toward,
+};
 
 /// Read buffer size.
 const READ_BUF: usize = 1 << 16;
@@ -650,6 +652,8 @@ pub struct PcdSink {
     conv: Conv,
     /// x, y, z whose output type differs from the incoming one (integers written as `F64`).
     promoted: [bool; 3],
+    /// How moved coordinates round to what the output stores ([`SinkOptions::rounding`]).
+    rounding: Rounding,
     /// Output field receiving the noise flag.
     noise: Option<usize>,
     /// Output fields receiving the written normals ([`SinkOptions::normals`]).
@@ -846,6 +850,7 @@ impl PcdSink {
             schema,
             conv,
             promoted,
+            rounding: options.rounding,
             noise,
             normals,
             kind,
@@ -879,14 +884,16 @@ impl PcdSink {
                     }
                 }
             }
-            let old = self.like.position(src);
-            let new = batch.positions[i];
-            for (axis, (n, o)) in [(new.x, old.x), (new.y, old.y), (new.z, old.z)]
-                .into_iter()
-                .enumerate()
-            {
-                if n.to_bits() != o.to_bits() || self.promoted[axis] {
-                    self.schema.set_f64(row, self.schema.xyz[axis], n);
+            let old = self.like.position(src).to_array();
+            let new = batch.positions[i].to_array();
+            let tys = self.schema.xyz.map(|f| self.schema.fields[f].ty);
+            let stored = self.rounding.store(new, old, [1.0; 3], |a, v, towards| {
+                stored_toward(v, towards, tys[a])
+            });
+            for axis in 0..3 {
+                if new[axis].to_bits() != old[axis].to_bits() || self.promoted[axis] {
+                    self.schema
+                        .set_f64(row, self.schema.xyz[axis], stored[axis]);
                 }
             }
             if let Some(k) = self.noise {

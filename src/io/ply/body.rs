@@ -9,7 +9,7 @@ use glam::DVec3;
 
 use super::super::IoError;
 use super::header::{PlyElement, PlyEncoding, PlyType};
-use crate::points::{Endian, Faces, ScalarType, Schema, read_scalar};
+use crate::points::{Endian, Faces, Rounding, ScalarType, Schema, read_scalar, stored_toward};
 
 /// Largest piece read at once while following counts a file declares (a lying count then fails
 /// with "truncated" instead of a huge allocation).
@@ -74,6 +74,32 @@ fn enc<const N: usize>(
     }
 }
 
+/// [`enc`] for `f32` fields, the records holding the input's positions, rounded as `rounding`
+/// says.
+fn enc_f32(
+    records: &mut [u8],
+    (rl, o): (usize, [usize; 3]),
+    endian: Endian,
+    positions: &[DVec3],
+    rounding: Rounding,
+) {
+    type Get = fn([u8; 4]) -> f32;
+    type Put = fn(f32) -> [u8; 4];
+    let (get, put): (Get, Put) = match endian {
+        Endian::Little => (f32::from_le_bytes, f32::to_le_bytes),
+        Endian::Big => (f32::from_be_bytes, f32::to_be_bytes),
+    };
+    for (r, p) in records.chunks_exact_mut(rl).zip(positions) {
+        let from = o.map(|at| f64::from(get(r[at..at + 4].try_into().expect("four bytes"))));
+        let stored = rounding.store(p.to_array(), from, [1.0; 3], |_, v, towards| {
+            stored_toward(v, towards, ScalarType::F32)
+        });
+        for (at, v) in o.into_iter().zip(stored) {
+            r[at..at + 4].copy_from_slice(&put(v as f32));
+        }
+    }
+}
+
 impl PosCodec {
     /// The codec for `schema`'s x, y and z fields.
     pub fn new(schema: &Schema) -> PosCodec {
@@ -111,24 +137,26 @@ impl PosCodec {
         }
     }
 
-    /// Stores `positions` into the x, y and z fields of the records in `records`.
-    pub fn encode(&self, schema: &Schema, records: &mut [u8], positions: &[DVec3]) {
+    /// Stores `positions` into the x, y and z fields of the records in `records`, which hold the
+    /// input's, rounded as `rounding` says.
+    pub fn encode(
+        &self,
+        schema: &Schema,
+        records: &mut [u8],
+        positions: &[DVec3],
+        rounding: Rounding,
+    ) {
         let (rl, o) = (self.record_len, self.offs);
         if rl == 0 {
             return;
         }
         match self.layout {
-            Layout::F32(Endian::Little) => {
-                enc(records, rl, o, |v| (v as f32).to_le_bytes(), positions)
-            }
-            Layout::F32(Endian::Big) => {
-                enc(records, rl, o, |v| (v as f32).to_be_bytes(), positions)
-            }
+            Layout::F32(endian) => enc_f32(records, (rl, o), endian, positions, rounding),
             Layout::F64(Endian::Little) => enc(records, rl, o, f64::to_le_bytes, positions),
             Layout::F64(Endian::Big) => enc(records, rl, o, f64::to_be_bytes, positions),
             Layout::Other => {
                 for (r, &p) in records.chunks_exact_mut(rl).zip(positions) {
-                    schema.set_position(r, p);
+                    schema.move_position(r, p, rounding);
                 }
             }
         }
@@ -609,7 +637,7 @@ mod tests {
                 let c = PosCodec::new(&s);
                 let pts = [DVec3::new(1.5, -2.0, 3.25), DVec3::new(-0.5, 7.0, 1e3)];
                 let mut recs = vec![9u8; 2 * s.record_len];
-                c.encode(&s, &mut recs, &pts);
+                c.encode(&s, &mut recs, &pts, Rounding::Nearest);
                 assert_eq!(recs[0], 9);
                 assert_eq!(recs[s.record_len], 9);
                 let mut out = Vec::new();

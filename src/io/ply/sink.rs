@@ -11,7 +11,7 @@ use crate::io::{
     AtomicFile, BodyStats, Extras, IoError, Meta, NOISE_FIELD, NormalField, NormalNames, Sink,
     SinkOptions, SourceInfo, Trailer, foreign_field_type,
 };
-use crate::points::{FLAG_NOISE, Faces, PointBatch, ScalarType, Schema, write_scalar};
+use crate::points::{FLAG_NOISE, Faces, PointBatch, Rounding, ScalarType, Schema, write_scalar};
 
 /// Streaming PLY writer.
 pub struct PlySink {
@@ -20,6 +20,8 @@ pub struct PlySink {
     /// Vertex record layout in the output (ascii: little-endian values).
     target: Schema,
     codec: PosCodec,
+    /// How moved coordinates round to what the output stores ([`SinkOptions::rounding`]).
+    rounding: Rounding,
     /// Layout of the incoming records.
     source: Schema,
     /// For each target field, the source field it comes from; `None` when the layouts agree.
@@ -332,6 +334,7 @@ impl PlySink {
             out,
             encoding,
             codec: PosCodec::new(&target),
+            rounding: options.rounding,
             target,
             source,
             map: (!same).then_some(map),
@@ -481,7 +484,7 @@ impl Sink for PlySink {
             }
         }
         self.codec
-            .encode(&self.target, &mut self.buf, &batch.positions);
+            .encode(&self.target, &mut self.buf, &batch.positions, self.rounding);
         if let Some(k) = self.noise {
             for (i, rec) in self.buf.chunks_exact_mut(trl).enumerate() {
                 let flag = u8::from(batch.flag(i) & FLAG_NOISE != 0);
