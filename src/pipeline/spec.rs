@@ -202,7 +202,9 @@ pub struct SpecOverlay {
     pub guard: Option<bool>,
     /// Hard cap on any point's displacement, in the input's units (metres for LiDAR). Default:
     /// none beyond the guarded operator's own bounds: 3 × the local noise (1 × at edges and
-    /// lines) and 0.25 × the point's own k-NN radius.
+    /// lines) and 0.25 × the point's own k-NN radius. Every cap holds in the written file: a
+    /// coordinate the output stores coarsely (float32, LAS scale) is rounded towards the input's
+    /// where rounding to nearest would lengthen the move.
     #[cfg_attr(feature = "cli", arg(long, value_name = "DISTANCE"))]
     #[serde(skip_serializing_if = "Option::is_none")]
     pub max_move: Option<f64>,
