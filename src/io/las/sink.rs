@@ -674,19 +674,17 @@ impl Sink for LasSink {
             };
             for (axis, &v) in v.iter().enumerate() {
                 let (s, o) = (s[axis], o[axis]);
-                let q = {
-                    stored_i32(stored[axis]).ok_or_else(|| {
-                        let name = ["x", "y", "z"][axis];
-                        IoError::invalid(
-                            &self.target,
-                            format!(
-                                "point {}: {name} = {v} cannot be stored with scale {s} and \
-                                 offset {o} (not finite or outside the 32-bit range)",
-                                first + i as u64
-                            ),
-                        )
-                    })?
-                };
+                let q = stored_i32(stored[axis]).ok_or_else(|| {
+                    let name = ["x", "y", "z"][axis];
+                    IoError::invalid(
+                        &self.target,
+                        format!(
+                            "point {}: {name} = {v} cannot be stored with scale {s} and offset \
+                             {o} (not finite or outside the 32-bit range)",
+                            first + i as u64
+                        ),
+                    )
+                })?;
                 put(rec, 4 * axis, &q.to_le_bytes());
                 self.min[axis] = self.min[axis].min(q);
                 self.max[axis] = self.max[axis].max(q);
