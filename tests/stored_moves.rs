@@ -4,9 +4,9 @@
 
 use std::path::Path;
 
-use rand::RngExt;
-use rand::SeedableRng;
+use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
+use rand_distr::StandardNormal;
 
 use crate::util::{qemd, s};
 use qem_denoise::io::Cloud;
@@ -32,10 +32,7 @@ fn ply_f32(points: &[[f64; 3]]) -> Vec<u8> {
 /// steps of 0.5 m), spacing `spacing`, with iso Gaussian noise `sigma`.
 fn utm_plane(spacing: f64, sigma: f64, seed: u64) -> Vec<[f64; 3]> {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    let mut gauss = || {
-        let (u, v): (f64, f64) = (rng.random::<f64>().max(1e-300), rng.random());
-        (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()
-    };
+    let mut gauss = move || rng.sample::<f64, _>(StandardNormal);
     let mut pts = Vec::new();
     for i in 0..40 {
         for j in 0..40 {
