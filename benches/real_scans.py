@@ -347,14 +347,16 @@ class Bench:
                             str(NOISE_LEVEL), "--unit", "median-spacing", "--seed",
                             str(NOISE_SEED)],
                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        m = re.search(r"(\d+) points displaced with σ = ([0-9.eE+-]+)", p.stderr)
+        # `N points displaced with σ = LEVEL × L = SIGMA (L = SPACING)` (src/main.rs).
+        m = re.search(r"(\d+) points displaced with σ = [0-9.eE+-]+ × L = ([0-9.eE+-]+) "
+                      r"\(L = ([0-9.eE+-]+)\)", p.stderr)
         if p.returncode != 0 or not m:
             why = last_line(p.stderr).replace("qemd: error: ", "").replace(scan + ": ", "")
             info["noise_error"] = f"`qemd noise`: {why}"
             log(f"  no noisy copy: {info['noise_error']}")
         else:
             info["sigma"] = float(m.group(2))
-            info["spacing"] = info["sigma"] / NOISE_LEVEL
+            info["spacing"] = float(m.group(3))
             run([self.qemd, "noise", files["noisy"], "-o", files["noisy_xyz"], "--level", "0"])
             check, _ = self.exact_copy(files["noisy"], files["noisy_xyz"])
             info.update(noisy_xyz_max_move=check["absolute"]["max"],
