@@ -194,7 +194,10 @@ impl Displacements {
         } else if d <= BIN_FLOOR {
             1
         } else {
-            2 + ((d / BIN_FLOOR).ln() / BIN_RATIO.ln()).floor().min(1e6) as u64
+            // `libm::log`, the same bits on every platform: the global noise is a bin edge.
+            2 + (libm::log(d / BIN_FLOOR) / libm::log(BIN_RATIO))
+                .floor()
+                .min(1e6) as u64
         }
     }
 

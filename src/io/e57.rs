@@ -302,10 +302,11 @@ impl ScanLayout {
             .filter(|_| state(self.spherical_state).is_ok_and(|s| s == 0))
         {
             let (r, az, el) = (get(r)?, get(a)?, get(e)?);
+            // `libm`: the same Cartesian bits on every platform.
             DVec3::new(
-                r * el.cos() * az.cos(),
-                r * el.cos() * az.sin(),
-                r * el.sin(),
+                r * libm::cos(el) * libm::cos(az),
+                r * libm::cos(el) * libm::sin(az),
+                r * libm::sin(el),
             )
         } else {
             return Ok(DVec3::NAN);
@@ -1084,8 +1085,12 @@ fn encode(
                 let valid = local.is_finite();
                 let sph = || {
                     let r = local.length();
-                    let az = local.y.atan2(local.x);
-                    let el = if r > 0.0 { (local.z / r).asin() } else { 0.0 };
+                    let az = libm::atan2(local.y, local.x);
+                    let el = if r > 0.0 {
+                        libm::asin(local.z / r)
+                    } else {
+                        0.0
+                    };
                     [r, az, el]
                 };
                 let values = plan

@@ -756,9 +756,7 @@ pub(crate) fn all_knn(
                 next.extend_from_slice(&level.sorted[a as usize..b as usize]);
             }
             let least = dense.iter().map(|&r| answers[r].1).min().unwrap_or(0);
-            let shrink = (least as f64 / (TARGET_LOAD_PER_K * k as f64))
-                .cbrt()
-                .clamp(2.0, 1e6);
+            let shrink = libm::cbrt(least as f64 / (TARGET_LOAD_PER_K * k as f64)).clamp(2.0, 1e6);
             next_want = level.cell / shrink;
             // A level that cannot be finer than this one (its span floors the cell size) would
             // make no progress: answer everything here instead.

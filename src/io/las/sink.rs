@@ -209,7 +209,7 @@ fn choose_frame(positions: &[DVec3]) -> Frame {
     }
     let extent = (hi - lo).max_element();
     let k = if extent > 0.0 {
-        (extent.log10().ceil() as i32 - 6).clamp(-9, -3)
+        (libm::log10(extent).ceil() as i32 - 6).clamp(-9, -3)
     } else {
         -3
     };
