@@ -7,11 +7,13 @@
 //! The eigenvalues come from the trigonometric solution of the characteristic cubic (after scaling
 //! by the largest entry and shifting by the mean eigenvalue, which keeps the cubic well
 //! conditioned), with `acos` and `cos` from the `libm` crate: plain Rust arithmetic, the same bits
-//! on every platform, where the C library's last bit differs between glibc, musl and macOS. The eigenvectors follow the robust construction of D. Eberly ("A Robust
-//! Eigensolver for 3×3 Symmetric Matrices"): the vector of the best separated eigenvalue is the
-//! longest cross product of two rows of A − λI; the second is the null vector of A − λI restricted
-//! to the plane orthogonal to the first; the third is their cross product. The result is an
-//! orthonormal right-handed basis even for repeated eigenvalues.
+//! on every platform, where the C library's last bit differs between glibc, musl and macOS.
+//!
+//! The eigenvectors follow the robust construction of D. Eberly ("A Robust Eigensolver for 3×3
+//! Symmetric Matrices"): the vector of the best separated eigenvalue is the longest cross product
+//! of two rows of A − λI; the second is the null vector of A − λI restricted to the plane
+//! orthogonal to the first; the third is their cross product. The result is an orthonormal
+//! right-handed basis even for repeated eigenvalues.
 
 use glam::DVec3;
 
