@@ -8,7 +8,7 @@ use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
 
-use crate::util::{qemd, s};
+use crate::util::{qemd_ok, s};
 use qem_denoise::io::Cloud;
 use qem_denoise::neighbours::brute;
 
@@ -67,7 +67,7 @@ fn issue9_max_move_holds_after_float32_rounding() {
     std::fs::write(&input, ply_f32(&utm_plane(0.4, 0.15, 1))).unwrap();
     let out = dir.path().join("out.ply");
     let cap = 0.07;
-    let o = qemd(&[
+    qemd_ok(&[
         "denoise",
         s(&input),
         "-o",
@@ -76,7 +76,6 @@ fn issue9_max_move_holds_after_float32_rounding() {
         "--max-move",
         "0.07",
     ]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let (_, d) = moves(&input, &out);
     let moved = d.iter().filter(|&&m| m > 0.0).count();
     let worst = d.iter().copied().fold(0.0, f64::max);
@@ -99,8 +98,7 @@ fn issue9_reach_cap_holds_after_float32_rounding() {
     // pass a quarter of the k-NN radius.
     std::fs::write(&input, ply_f32(&utm_plane(0.4, 0.12, 2))).unwrap();
     let out = dir.path().join("out.ply");
-    let o = qemd(&["denoise", s(&input), "-o", s(&out), "-q"]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    qemd_ok(&["denoise", s(&input), "-o", s(&out), "-q"]);
     let (pos, d) = moves(&input, &out);
     let mut worst: f64 = 0.0;
     for (i, &m) in d.iter().enumerate() {
@@ -124,10 +122,9 @@ fn issue9_las_scale_rounding_keeps_max_move() {
     std::fs::write(&xyz, text).unwrap();
     // A LAS copy (qemd picks a 1 mm scale for UTM coordinates), denoised LAS to LAS.
     let las = dir.path().join("utm.las");
-    let o = qemd(&["noise", s(&xyz), "-o", s(&las), "--level", "0"]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    qemd_ok(&["noise", s(&xyz), "-o", s(&las), "--level", "0"]);
     let out = dir.path().join("out.las");
-    let o = qemd(&[
+    qemd_ok(&[
         "denoise",
         s(&las),
         "-o",
@@ -136,7 +133,6 @@ fn issue9_las_scale_rounding_keeps_max_move() {
         "--max-move",
         "0.0305",
     ]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let (_, d) = moves(&las, &out);
     let worst = d.iter().copied().fold(0.0, f64::max);
     assert!(worst <= 0.0305 + 1e-9, "a written move of {worst} m");

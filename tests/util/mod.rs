@@ -14,6 +14,13 @@ pub fn qemd(args: &[&str]) -> Output {
         .expect("qemd runs")
 }
 
+/// [`qemd`], asserting that it succeeded (its stderr in the failure message).
+pub fn qemd_ok(args: &[&str]) -> Output {
+    let o = qemd(args);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    o
+}
+
 /// A path as a command-line argument.
 pub fn s(p: &Path) -> &str {
     p.to_str().unwrap()
