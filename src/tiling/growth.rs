@@ -3,7 +3,8 @@
 //! tile's whole grown halo.
 //!
 //! ```text
-//!   first run: the tile's spill file (core + planned halo)
+//!   first run: the tile's spill file (core + planned halo), or its points within a narrower
+//!              halo for a pass that reaches less far (the globals' pre-pass)
 //!        │  exact owned results are kept; the rest are *pending*
 //!        ▼
 //!   round r (halo hᵣ = 2hᵣ₋₁, from round 2 at least the plan's halo, capped at
@@ -88,6 +89,11 @@ type Pending = (u64, DVec3);
 /// that depend on `hops` hops of capped lists are exact at [`plan::sufficient_halo`], so the
 /// halo grows past it only for groups with fewer than `min_points` points loaded.
 ///
+/// With `narrow`, the first run holds only the spill file's points within that halo of the
+/// tile (where it is below the tile's own): for a pass whose results reach much less far than
+/// the operator's, such as the globals' pre-pass, whose index over the whole first load was
+/// most of its cost. The growth rounds start from it.
+///
 /// # Errors
 /// Spill read failures, `f`'s errors, cancellation, [`TilingError::HaloLimit`], and
 /// [`TilingError::PointBudget`] when one point's box at the halo it needs holds more points than
@@ -99,16 +105,23 @@ pub fn with_exact_halo<V: Default>(
     budget: &TileBudget,
     t: usize,
     (hops, min_points): (usize, usize),
-    preloaded: Option<Vec<TilePoint>>,
+    (preloaded, narrow): (Option<Vec<TilePoint>>, Option<f64>),
     mut merge: impl FnMut(&mut V, V),
     mut f: impl FnMut(&[TilePoint], &CloudRun) -> Result<RunOutput<V>, TilingError>,
 ) -> Result<(V, Growth), TilingError> {
     check_cancel()?;
-    let pts = match preloaded {
+    let mut pts = match preloaded {
         Some(p) => p,
         None => super::load_tile(dir, plan, t)?,
     };
-    let first = plan.tile_halo(t);
+    let (first, region) = match narrow {
+        Some(h) if h > 0.0 && h < plan.tile_halo(t) => {
+            let faces = plan.narrowed_faces(t, h);
+            pts.retain(|p| p.owned || plan.within_faces(t, &faces, p.p));
+            (h, plan.region_within(t, &faces))
+        }
+        _ => (plan.tile_halo(t), plan.first_region(t)),
+    };
     budget.check_points(t, pts.len() as u64, first)?;
     let mut value = V::default();
     let mut growth = Growth {
@@ -122,7 +135,7 @@ pub fn with_exact_halo<V: Default>(
         // Isolated points may have fewer than k points within reach; the cloud has more.
         pts.iter().filter(owned).map(|p| (p.index, p.p)).collect()
     } else if pts.iter().any(|p| p.owned) {
-        let (v, exact) = run_kernel(plan, budget, &pts, plan.first_region(t), None, &mut f)?;
+        let (v, exact) = run_kernel(plan, budget, &pts, region, None, &mut f)?;
         merge(&mut value, v);
         pending_of(&pts, &exact)
     } else {

@@ -194,7 +194,8 @@ pub fn load_tile(dir: &Path, plan: &Plan, t: usize) -> Result<Vec<TilePoint>, Ti
     Ok(pts)
 }
 
-/// The exact partials behind [`Globals`] over tile `t`'s owned points (the pre-pass).
+/// The exact partials behind [`Globals`] over tile `t`'s owned points (the pre-pass), from a
+/// first load narrowed to [`globals_halo`].
 ///
 /// # Errors
 /// Spill read failures, too few points, halo limit.
@@ -205,13 +206,28 @@ pub fn globals_of_tile(
     t: usize,
     params: &Params,
 ) -> Result<GlobalsPartial, TilingError> {
-    let (sum, _) = growth::with_exact_halo(
+    globals_of_tile_from(dir, plan, budget, (t, globals_halo(plan)), params).map(|(sum, _)| sum)
+}
+
+/// [`globals_of_tile`] with the first load narrowed to `narrow` (the tile's own halo when
+/// `None`), and how the halo grew.
+///
+/// # Errors
+/// As [`globals_of_tile`].
+pub fn globals_of_tile_from(
+    dir: &Path,
+    plan: &Plan,
+    budget: &TileBudget,
+    (t, narrow): (usize, Option<f64>),
+    params: &Params,
+) -> Result<(GlobalsPartial, growth::Growth), TilingError> {
+    growth::with_exact_halo(
         dir,
         plan,
         budget,
         t,
         (0, structure::NEAR),
-        None,
+        (None, narrow),
         |sum: &mut GlobalsPartial, part| sum.merge(&part),
         |pts, run| {
             // Only the exact owned contributions are summed: the others are redone with a larger
@@ -219,9 +235,23 @@ pub fn globals_of_tile(
             cloud::globals_partial(run, params, plan.finite, |i, exact| pts[i].owned && exact)
                 .map_err(|e| TilingError::Denoise { tile: t, error: e })
         },
-    )?;
-    Ok(sum)
+    )
 }
+
+/// The first load of the globals' pre-pass: [`GLOBALS_HALO`] typical k-NN radii (the plan's
+/// isolation radius over [`crate::denoise::isolation::ISOLATION`]) instead of the operator's
+/// halo of about 12, as its lists of [`structure::NEAR`] reach about 0.7 of one on a surface.
+/// Points whose list reaches past it are redone by the growth rounds, and the result does not
+/// depend on it. `None` (the tile's own halo) under the user's `--radius`, which says nothing of
+/// the typical radius.
+pub fn globals_halo(plan: &Plan) -> Option<f64> {
+    plan.isolation
+        .filter(|_| !plan.short_lists)
+        .map(|r| GLOBALS_HALO * r / crate::denoise::isolation::ISOLATION)
+}
+
+/// Typical k-NN radii of the globals' first load ([`globals_halo`]).
+const GLOBALS_HALO: f64 = 3.0;
 
 /// Processes tile `t`: runs the operator with a halo large enough for every owned result to be
 /// exact and writes the owned results to the tile's result file. `preloaded` is the tile's
@@ -245,7 +275,7 @@ pub fn process_tile(
         budget,
         t,
         (hops, params.k()),
-        preloaded,
+        (preloaded, None),
         |sum: &mut Owned, part: Owned| {
             // A vector per run: one growing vector would hold up to twice its length in
             // capacity while the next kernel runs.

@@ -198,12 +198,28 @@ impl Plan {
     /// cloud's outer bounds pushed to infinity (no point lies beyond them, so a k-NN ball
     /// crossing them is still complete).
     pub fn first_region(&self, t: usize) -> Aabb {
-        let h = self.face_halos(t);
-        let core = self.tiles[t].core;
+        self.region_within(t, &self.face_halos(t))
+    }
+
+    /// The face halos of a first load of tile `t` narrowed to `halo`: each of
+    /// [`Plan::face_halos`], at most `halo`. Such a load is a subset of the spill file's.
+    pub fn narrowed_faces(&self, t: usize, halo: f64) -> [f64; 6] {
+        self.face_halos(t).map(|h| h.min(halo))
+    }
+
+    /// The region of a load of tile `t` with face halos `faces` (at most its own), as
+    /// [`Plan::first_region`].
+    pub fn region_within(&self, t: usize, faces: &[f64; 6]) -> Aabb {
+        let (h, core) = (faces, self.tiles[t].core);
         self.region_of(&Aabb {
             min: core.min - DVec3::new(h[0], h[2], h[4]),
             max: core.max + DVec3::new(h[1], h[3], h[5]),
         })
+    }
+
+    /// True when `p` lies within tile `t`'s box grown by `faces`.
+    pub fn within_faces(&self, t: usize, faces: &[f64; 6], p: DVec3) -> bool {
+        within(&self.tiles[t].core, faces, p)
     }
 
     /// True when tile `t`'s first load holds `p`: `p` lies within its box grown by its face halos.
