@@ -224,7 +224,7 @@ impl Plan {
 
     /// True when tile `t`'s first load holds `p`: `p` lies within its box grown by its face halos.
     pub fn in_first_load(&self, t: usize, p: DVec3) -> bool {
-        within(&self.tiles[t].core, &self.face_halos(t), p)
+        self.within_faces(t, &self.face_halos(t), p)
     }
 
     /// `bx` (a box holding every point of the cloud inside it) with faces at or beyond the cloud's

@@ -214,12 +214,11 @@ mod tests {
         let (mut a, mut b) = (GlobalsPartial::default(), GlobalsPartial::default());
         let mut grew = 0;
         for t in 0..plan.tiles.len() {
-            let tb = (t, None);
             let (whole, _) = crate::tiling::globals_of_tile_from(
                 work.path(),
                 &plan,
                 &budget,
-                tb,
+                (t, None),
                 &job.spec.params,
             )
             .unwrap();
