@@ -138,6 +138,40 @@ mod tests {
         job
     }
 
+    /// A tiled job on `d/in.ply` at 4000 points a tile, planned and partitioned in a work
+    /// directory under `d`, output `d/b.ply`.
+    struct Phased {
+        job: Job,
+        opts: RunOptions,
+        info: SourceInfo,
+        limits: plan::Limits,
+        plan: crate::tiling::plan::Plan,
+        work: WorkDir,
+        part: partition::Partition,
+    }
+
+    fn planned_and_partitioned(d: &Path) -> Phased {
+        let job = job(d, "b.ply");
+        let opts = RunOptions {
+            tile_points: Some(4000),
+            ..RunOptions::default()
+        };
+        let info = io::open(&job.input, None).unwrap().info().clone();
+        let limits = plan::Limits::new(&opts, bytes_per_point(&job.spec.params, 12));
+        let plan = plan::plan(&job, &opts, &info, &limits).unwrap();
+        let work = WorkDir::temporary_in(d).unwrap();
+        let part = partition::partition(&job, &opts, &plan, &limits, &work).unwrap();
+        Phased {
+            job,
+            opts,
+            info,
+            limits,
+            plan,
+            work,
+            part,
+        }
+    }
+
     #[test]
     fn issue10_phases_called_one_by_one_write_the_in_memory_bytes() {
         let d = tempfile::tempdir().unwrap();
@@ -146,17 +180,16 @@ mod tests {
         assert_eq!(whole.mode, "points");
         assert!(whole.outliers_found > 0);
 
-        let job = job(d.path(), "b.ply");
-        let opts = RunOptions {
-            tile_points: Some(4000),
-            ..RunOptions::default()
-        };
-        let info = io::open(&job.input, None).unwrap().info().clone();
-        let limits = plan::Limits::new(&opts, bytes_per_point(&job.spec.params, 12));
-        let plan = plan::plan(&job, &opts, &info, &limits).unwrap();
+        let Phased {
+            job,
+            opts,
+            info,
+            limits,
+            plan,
+            work,
+            part,
+        } = planned_and_partitioned(d.path());
         assert!(plan.tiles.len() >= 4, "{}", plan.tiles.len());
-        let work = WorkDir::temporary_in(d.path()).unwrap();
-        let part = partition::partition(&job, &opts, &plan, &limits, &work).unwrap();
         assert!(!part.resumed && part.bytes > 0);
         let budget = part.budget(&limits);
         let g = globals::globals(&job, &opts, &plan, &work, &budget).unwrap();
@@ -198,16 +231,14 @@ mod tests {
         // narrowed first load, and the growth rounds redo them.
         let d = tempfile::tempdir().unwrap();
         cloud(&d.path().join("in.ply"), 20_000);
-        let job = job(d.path(), "b.ply");
-        let opts = RunOptions {
-            tile_points: Some(4000),
-            ..RunOptions::default()
-        };
-        let info = io::open(&job.input, None).unwrap().info().clone();
-        let limits = plan::Limits::new(&opts, bytes_per_point(&job.spec.params, 12));
-        let plan = plan::plan(&job, &opts, &info, &limits).unwrap();
-        let work = WorkDir::temporary_in(d.path()).unwrap();
-        let part = partition::partition(&job, &opts, &plan, &limits, &work).unwrap();
+        let Phased {
+            job,
+            plan,
+            work,
+            part,
+            limits,
+            ..
+        } = planned_and_partitioned(d.path());
         let budget = part.budget(&limits);
         let narrow = crate::tiling::globals_halo(&plan).unwrap();
         assert!(narrow < plan.halo / 3.0, "{narrow} {}", plan.halo);
