@@ -58,32 +58,39 @@ fn pow2(k: i64) -> f64 {
 }
 
 /// `eˣ`, within a few ulp, the same bits on every platform. NaN gives NaN.
+///
+/// One test keeps the common case (a finite argument, a normal result) on the straight path:
+/// the integer part of `64x / ln 2` is read from the bits of the rounded sum (exact: its
+/// magnitude is below 2¹⁷) instead of a saturating float-to-integer conversion. This gives the
+/// bits of the first version with early returns (kept in the tests) at about 20 % less time per
+/// call (3.7 against 4.7 ns in a loop of lists of 16; docs/BENCHMARKS.md).
 #[inline]
 pub fn exp(x: f64) -> f64 {
-    if x.is_nan() {
-        return x;
+    if !(UNDER..=OVER).contains(&x) {
+        return if x.is_nan() {
+            x
+        } else if x > 0.0 {
+            f64::INFINITY
+        } else {
+            0.0
+        };
     }
-    if x > OVER {
-        return f64::INFINITY;
-    }
-    if x < UNDER {
-        return 0.0;
-    }
-    let kf = (x * INV_LN2_64 + ROUND) - ROUND;
+    let sum = x * INV_LN2_64 + ROUND;
+    let kf = sum - ROUND;
+    let k = (sum.to_bits() as i64) - (ROUND.to_bits() as i64);
     let r = (x - kf * LN2_HI_64) - kf * LN2_LO_64;
     let r2 = r * r;
     let em1 = r + r2 * (0.5 + r * (1.0 / 6.0)) + (r2 * r2) * (1.0 / 24.0 + r * (1.0 / 120.0));
-    let k = kf as i64;
     let t = TABLE[(k & 63) as usize];
     let p = t + t * em1;
     let m = k >> 6;
-    if m < -1021 {
+    if (-1021..=1023).contains(&m) {
+        p * pow2(m)
+    } else if m < -1021 {
         // Subnormal results: scale in two steps, exact until the last rounding.
         p * pow2(m + 1000) * pow2(-1000)
-    } else if m > 1023 {
-        p * pow2(m - 1) * 2.0
     } else {
-        p * pow2(m)
+        p * pow2(m - 1) * 2.0
     }
 }
 
@@ -118,6 +125,67 @@ mod tests {
         for i in 0..=100_000 {
             let x = -50.0 * i as f64 / 100_000.0;
             assert!(ulps(exp(x), x.exp()) <= 2, "{x}");
+        }
+    }
+
+    /// The first version (early returns, a saturating float-to-integer conversion): [`exp`]
+    /// must give its bits, so no output of the operators changed with the faster one.
+    fn branchy(x: f64) -> f64 {
+        if x.is_nan() {
+            return x;
+        }
+        if x > OVER {
+            return f64::INFINITY;
+        }
+        if x < UNDER {
+            return 0.0;
+        }
+        let kf = (x * INV_LN2_64 + ROUND) - ROUND;
+        let r = (x - kf * LN2_HI_64) - kf * LN2_LO_64;
+        let r2 = r * r;
+        let em1 = r + r2 * (0.5 + r * (1.0 / 6.0)) + (r2 * r2) * (1.0 / 24.0 + r * (1.0 / 120.0));
+        let k = kf as i64;
+        let t = TABLE[(k & 63) as usize];
+        let p = t + t * em1;
+        let m = k >> 6;
+        if m < -1021 {
+            p * pow2(m + 1000) * pow2(-1000)
+        } else if m > 1023 {
+            p * pow2(m - 1) * 2.0
+        } else {
+            p * pow2(m)
+        }
+    }
+
+    #[test]
+    fn the_bits_of_the_first_version() {
+        let mut xs: Vec<f64> = (0..=400_000)
+            .map(|i| UNDER - 5.0 + (OVER - UNDER + 10.0) * i as f64 / 400_000.0)
+            .collect();
+        // The weights' own range, finely, and the edges of every branch.
+        xs.extend((0..=100_000).map(|i| -50.0 * i as f64 / 100_000.0));
+        xs.extend([
+            0.0,
+            -0.0,
+            f64::NAN,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+            OVER,
+            UNDER,
+            f64::MIN_POSITIVE,
+            -f64::MIN_POSITIVE,
+            1e-300,
+            -708.39,
+            -708.4,
+            -745.0,
+            709.7,
+        ]);
+        for x in xs {
+            let (a, b) = (exp(x), branchy(x));
+            assert!(
+                a.to_bits() == b.to_bits() || (a.is_nan() && b.is_nan()),
+                "{x}: {a} against the first version's {b}"
+            );
         }
     }
 
