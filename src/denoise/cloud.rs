@@ -981,6 +981,9 @@ pub fn run_all_with(
     params: &Params,
     held: Option<&[bool]>,
 ) -> Result<AllResult, DenoiseError> {
+    // The isolation radius (the typical radius's probes) is neighbour work: booked to
+    // `neighbours` with the graph.
+    let timer = Timer::start();
     let finite: Vec<usize> = (0..positions.len())
         .filter(|&i| crate::points::in_range(positions[i]))
         .collect();
@@ -1003,7 +1006,6 @@ pub fn run_all_with(
         wanted: None,
         held: held.as_deref(),
     };
-    let timer = Timer::start();
     let k = params.k();
     let kg = globals_k(params);
     let result = if !needs_globals(params) {
