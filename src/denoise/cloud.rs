@@ -397,6 +397,26 @@ fn graph(
     hops: usize,
     stops: Option<usize>,
 ) -> Result<Graph, DenoiseError> {
+    Ok(capped(run, k, listing(run, k, hops, stops)?))
+}
+
+/// A run's k-NN lists before the isolation cap ([`graph`]'s first half).
+struct Listing {
+    frame: Frame,
+    index: KnnIndex,
+    lists: Neighbourhoods,
+    radii: Vec<f64>,
+    listed: Vec<bool>,
+}
+
+/// The lists of [`graph`], not capped yet. Without [`CloudRun::wanted`] points the run's
+/// isolation radius is not read.
+fn listing(
+    run: &CloudRun,
+    k: usize,
+    hops: usize,
+    stops: Option<usize>,
+) -> Result<Listing, DenoiseError> {
     let frame = Frame::new(run.positions, Some(run.ties));
     let index = KnnIndex::build_with_ties(&frame.positions, run.origin, frame.ties.clone())?;
     let seeds: Option<(Vec<bool>, bool)> = run.wanted.map(|w| {
@@ -431,13 +451,31 @@ fn graph(
             (lists, radii, Vec::new())
         }
     };
+    Ok(Listing {
+        frame,
+        index,
+        lists,
+        radii,
+        listed,
+    })
+}
+
+/// [`graph`] from its [`listing`]: the lists capped at the run's isolation radius.
+fn capped(run: &CloudRun, k: usize, listing: Listing) -> Graph {
+    let Listing {
+        frame,
+        index,
+        lists,
+        radii,
+        listed,
+    } = listing;
     let (lists, radii, capped) =
         super::isolation::cap_lists(lists, radii, run.isolation, |i, u| index.dist2(i, u));
     let least = super::isolation::least_list(k, run.short_lists);
     let isolated = (0..lists.len())
         .map(|i| is_isolated(capped[i], lists.get(i).len(), least))
         .collect();
-    Ok(Graph {
+    Graph {
         frame,
         lists,
         radii,
@@ -445,7 +483,32 @@ fn graph(
         capped,
         isolated,
         listed,
-    })
+    }
+}
+
+/// [`super::isolation::typical_radius`] of a whole cloud of `population` points from its own
+/// uncapped lists of `k`, when the planner's sample is that cloud (at most
+/// [`super::isolation::SAMPLE`] points, the run's order being the global-index order): each
+/// probe's distance to its `ks`-th sample neighbour is its list's entry `ks` (lists are sorted by
+/// distance, the same distances to the bit). `None` when lists of `k` are too short for it.
+fn typical_from_lists(l: &Listing, population: u64, k: usize) -> Option<Option<f64>> {
+    let n = l.frame.positions.len();
+    let Some((probes, ks)) = super::isolation::probes(n) else {
+        return Some(None);
+    };
+    if ks >= k {
+        return None;
+    }
+    let radii = probes
+        .map(|i| {
+            let j = l.frame.working(i);
+            l.lists
+                .get(j)
+                .get(ks)
+                .map_or(0.0, |&u| l.index.dist2(j, u as usize).sqrt())
+        })
+        .collect();
+    Some(super::isolation::typical_of(radii, n, population, k, ks))
 }
 
 /// Whether a listed point stays where it is whatever lies past its members' lists: its class,
@@ -991,10 +1054,38 @@ pub fn run_all_with(
     let ties: Vec<u64> = finite.iter().map(|&i| i as u64).collect();
     let held: Option<Vec<bool>> = held.map(|h| finite.iter().map(|&i| h[i]).collect());
     let origin = super::origin_of(&pts);
-    let (isolation, short_lists) = super::isolation::cap(
-        super::isolation::of_cloud(&pts, &ties, origin, params.k()),
-        params.radius,
-    );
+    let k = params.k();
+    let kg = globals_k(params);
+    let listed_run = CloudRun {
+        positions: &pts,
+        ties: &ties,
+        origin,
+        region: None,
+        isolation: None,
+        short_lists: false,
+        complete: None,
+        wanted: None,
+        held: None,
+    };
+    // Where the planner's sample is the whole cloud, the isolation radius is read from the run's
+    // own lists (one k-NN pass, not two: the probes' pass was about 10 % of a 120 k-point run's
+    // wall time); elsewhere it comes from the sample, as the tiling planner computes it.
+    let own = (pts.len() <= super::isolation::SAMPLE
+        && pts.len() >= k.max(kg)
+        && (k >= kg || !needs_globals(params)))
+    .then(|| listing(&listed_run, k, 0, None))
+    .transpose()?
+    .and_then(|l| typical_from_lists(&l, pts.len() as u64, k).map(|r_k| (l, r_k)));
+    let (listed, isolation) = match own {
+        Some((l, r_k)) => (Some(l), super::isolation::radius_of(r_k)),
+        None => (None, super::isolation::of_cloud(&pts, &ties, origin, k)),
+    };
+    let (isolation, short_lists) = super::isolation::cap(isolation, params.radius);
+    // The run's graph: from the lists above, or one pass now.
+    let graph_of = |r: &CloudRun, listed: Option<Listing>| match listed {
+        Some(l) => Ok(capped(r, k, l)),
+        None => graph(r, k, 0, None),
+    };
     let r = CloudRun {
         positions: &pts,
         ties: &ties,
@@ -1006,20 +1097,18 @@ pub fn run_all_with(
         wanted: None,
         held: held.as_deref(),
     };
-    let k = params.k();
-    let kg = globals_k(params);
     let result = if !needs_globals(params) {
         run_on(
             &r,
             params,
             &Globals::default(),
-            graph(&r, k, 0, None)?,
+            graph_of(&r, listed)?,
             timer,
         )?
     } else if k >= kg {
         // One k-NN pass serves both: the pre-pass reads the first kg members of each list,
         // which are its kg-NN list to the bit (see `partial_of`).
-        let g = graph(&r, k, 0, None).map_err(|e| match e {
+        let g = graph_of(&r, listed).map_err(|e| match e {
             // As the separate pre-pass would fail first, on its kg.
             DenoiseError::Neighbours(NeighboursError::TooFewPoints { points, .. })
                 if points < kg =>

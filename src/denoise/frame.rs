@@ -46,6 +46,11 @@ impl Frame {
         }
     }
 
+    /// The working index of input point `i`.
+    pub fn working(&self, i: usize) -> usize {
+        self.inverse[i] as usize
+    }
+
     /// Puts per-point values computed in working order back into input order.
     pub fn restore<T: Copy + Send + Sync>(&self, working: &[T]) -> Vec<T> {
         self.inverse

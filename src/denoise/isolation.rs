@@ -62,12 +62,8 @@ pub fn sample(positions: &[DVec3], ties: &[u64]) -> Vec<DVec3> {
 /// the full density as on a surface (radius ∝ 1/√density). Zero distances (duplicate stacks) are
 /// left out of the median. `None` when there are too few points or no positive distance.
 pub fn typical_radius(sample: &[DVec3], origin: DVec3, population: u64, k: usize) -> Option<f64> {
-    let ks = 8.min(sample.len().saturating_sub(1));
-    if ks < 2 {
-        return None;
-    }
+    let (probes, ks) = probes(sample.len())?;
     let index = KnnIndex::build(sample, origin).ok()?;
-    let probes = (0..sample.len()).step_by((sample.len() / PROBES).max(1));
     // The probes' lists from one grid pass over the sample (parallel, and its O(n) part is a
     // sort into cells), not from a k-d tree built for them: the tree's serial construction was
     // 3.5 % of a 120 k-point run's instructions and about 30 ms of its wall time (callgrind,
@@ -76,7 +72,7 @@ pub fn typical_radius(sample: &[DVec3], origin: DVec3, population: u64, k: usize
     // points there are.
     let mut asked = vec![false; sample.len()];
     probes.clone().for_each(|i| asked[i] = true);
-    let mut radii: Vec<f64> = match index.knn_asked(ks + 1, Some(&asked)) {
+    let radii: Vec<f64> = match index.knn_asked(ks + 1, Some(&asked)) {
         Ok((_, radii2, _)) => probes.map(|i| radii2[i].sqrt()).collect(),
         Err(_) => {
             let mut list = Vec::new();
@@ -85,21 +81,45 @@ pub fn typical_radius(sample: &[DVec3], origin: DVec3, population: u64, k: usize
                 .collect()
         }
     };
+    typical_of(radii, sample.len(), population, k, ks)
+}
+
+/// The sample points [`typical_radius`] probes (an even stride through the sample) and the
+/// neighbour it measures each one's distance to (`ks`, lists of `ks + 1` holding the point
+/// itself); `None` when the sample is too small.
+pub fn probes(len: usize) -> Option<(std::iter::StepBy<std::ops::Range<usize>>, usize)> {
+    let ks = 8.min(len.saturating_sub(1));
+    (ks >= 2).then(|| ((0..len).step_by((len / PROBES).max(1)), ks))
+}
+
+/// [`typical_radius`] from the probes' distances to their `ks`-th sample neighbour (`radii`, in
+/// probe order; zero and NaN distances are left out), for a sample of `len` of `population`
+/// points and lists of `k`.
+pub fn typical_of(
+    mut radii: Vec<f64>,
+    len: usize,
+    population: u64,
+    k: usize,
+    ks: usize,
+) -> Option<f64> {
     radii.retain(|&r| r > 0.0);
     if radii.is_empty() {
         return None;
     }
     radii.sort_by(f64::total_cmp);
-    let fraction = sample.len() as f64 / population.max(1) as f64;
+    let fraction = len as f64 / population.max(1) as f64;
     let r_k = radii[radii.len() / 2] * (k as f64 * fraction / ks as f64).sqrt();
     (r_k > 0.0 && r_k.is_finite()).then_some(r_k)
 }
 
 /// The isolation radius `ISOLATION × r_k` for lists of `k` (see [`typical_radius`]).
 pub fn radius(sample: &[DVec3], origin: DVec3, population: u64, k: usize) -> Option<f64> {
-    typical_radius(sample, origin, population, k)
-        .map(|r| r * ISOLATION)
-        .filter(|r| r.is_finite())
+    radius_of(typical_radius(sample, origin, population, k))
+}
+
+/// The isolation radius for the typical radius `r_k` ([`typical_radius`]).
+pub fn radius_of(r_k: Option<f64>) -> Option<f64> {
+    r_k.map(|r| r * ISOLATION).filter(|r| r.is_finite())
 }
 
 /// The isolation radius of a whole cloud held in memory (`ties`: global indices), drawn from the

@@ -367,10 +367,12 @@ impl Planner {
             bounds.min
         };
         let pts: Vec<DVec3> = sample.iter().map(|s| s.1).collect();
-        let halo = halo_estimate(&pts, origin, self.finite, k, reach, &bounds);
+        // One typical radius for the halo and the isolation radius (a grid pass over the sample).
+        let r_k = crate::denoise::isolation::typical_radius(&pts, origin, self.finite, k);
+        let halo = halo_estimate(r_k, reach, &bounds);
         // The in-memory path draws the same radius from the same sample when the capacity is
         // [`SAMPLE`], as the pipeline's is.
-        let isolation = crate::denoise::isolation::radius(&pts, origin, self.finite, k);
+        let isolation = crate::denoise::isolation::radius_of(r_k);
         let plan_at = |target: u64| {
             let mut nodes = Vec::new();
             let mut tiles = Vec::new();
@@ -769,19 +771,12 @@ fn cut_at(pts: &[DVec3], idx: &mut [usize], mid: usize, axis: usize, bx: &Aabb) 
     }
 }
 
-/// Initial halo: `(reach + 1)` typical k-NN radii ([`crate::denoise::isolation::typical_radius`])
-/// times a safety factor of 1.5. Only the speed depends on it: tiles whose halo proves too small
-/// are redone with a larger one.
-fn halo_estimate(
-    sample: &[DVec3],
-    origin: DVec3,
-    finite: u64,
-    k: usize,
-    reach: usize,
-    bounds: &Aabb,
-) -> f64 {
+/// Initial halo: `(reach + 1)` typical k-NN radii `r_k`
+/// ([`crate::denoise::isolation::typical_radius`]) times a safety factor of 1.5. Only the speed
+/// depends on it: tiles whose halo proves too small are redone with a larger one.
+fn halo_estimate(r_k: Option<f64>, reach: usize, bounds: &Aabb) -> f64 {
     let fallback = bounds.diagonal() * 1e-3;
-    match crate::denoise::isolation::typical_radius(sample, origin, finite, k) {
+    match r_k {
         Some(r_k) => {
             let h = (reach + 1) as f64 * r_k * 1.5;
             if h > 0.0 && h.is_finite() {
