@@ -1189,6 +1189,35 @@ mod tests {
         pts
     }
 
+    #[test]
+    fn the_isolation_radius_from_the_runs_lists_is_the_samples() {
+        // Duplicates, a far cluster and far singles; with and without strided probes.
+        let mut big = issue9_cloud();
+        for i in 0..6000 {
+            big.push(DVec3::new(100.0 + (i % 80) as f64, (i / 80) as f64, 0.0));
+        }
+        for pts in [issue9_cloud(), big] {
+            let ties: Vec<u64> = (0..pts.len() as u64).collect();
+            let run = whole_run(&pts, &ties);
+            for k in [9, 12, 16, 24] {
+                let l = listing(&run, k, 0, None).unwrap();
+                let own = typical_from_lists(&l, pts.len() as u64, k).unwrap();
+                let sample = crate::denoise::isolation::sample(&pts, &ties);
+                let want = crate::denoise::isolation::typical_radius(
+                    &sample,
+                    run.origin,
+                    pts.len() as u64,
+                    k,
+                );
+                assert!(want.is_some());
+                assert_eq!(own, want, "k = {k}");
+            }
+            // Lists too short for the probes' neighbour: the sample's pass is needed.
+            let l = listing(&run, 8, 0, None).unwrap();
+            assert_eq!(typical_from_lists(&l, pts.len() as u64, 8), None);
+        }
+    }
+
     /// The whole cloud `pts` as one run, lists capped at its isolation radius for k = 16.
     fn whole_run<'a>(pts: &'a [DVec3], ties: &'a [u64]) -> CloudRun<'a> {
         let origin = crate::denoise::origin_of(pts);
