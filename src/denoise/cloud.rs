@@ -1069,12 +1069,14 @@ pub fn run_all_with(
     };
     // Where the planner's sample is the whole cloud, the isolation radius is read from the run's
     // own lists (one k-NN pass, not two: the probes' pass was about 10 % of a 120 k-point run's
-    // wall time); elsewhere it comes from the sample, as the tiling planner computes it.
+    // wall time); elsewhere it comes from the sample, as the tiling planner computes it. A
+    // listing that fails (too few indexable points, a cancel) takes the other path, which fails
+    // the same way, with the errors it always gave.
     let own = (pts.len() <= super::isolation::SAMPLE
         && pts.len() >= k.max(kg)
         && (k >= kg || !needs_globals(params)))
-    .then(|| listing(&listed_run, k, 0, None))
-    .transpose()?
+    .then(|| listing(&listed_run, k, 0, None).ok())
+    .flatten()
     .and_then(|l| typical_from_lists(&l, pts.len() as u64, k).map(|r_k| (l, r_k)));
     let (listed, isolation) = match own {
         Some((l, r_k)) => (Some(l), super::isolation::radius_of(r_k)),
