@@ -285,13 +285,9 @@ mod tests {
 
     #[test]
     fn typical_radius_equals_brute_force_with_duplicates_and_non_finite_points() {
-        let mut x = 0x2545_f491_4f6c_dd1du64;
-        let mut rnd = move || {
-            x ^= x << 13;
-            x ^= x >> 7;
-            x ^= x << 17;
-            (x >> 11) as f64 / (1u64 << 53) as f64
-        };
+        use rand::{RngExt, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(16);
+        let mut rnd = move || rng.random::<f64>();
         // 9000 points (so probes are strided), a dense clump, duplicates and non-finite points.
         let mut pts: Vec<DVec3> = (0..9000)
             .map(|i| {
