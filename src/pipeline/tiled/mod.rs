@@ -180,34 +180,26 @@ mod tests {
         assert_eq!(whole.mode, "points");
         assert!(whole.outliers_found > 0);
 
-        let Phased {
-            job,
-            opts,
-            info,
-            limits,
-            plan,
-            work,
-            part,
-        } = planned_and_partitioned(d.path());
-        assert!(plan.tiles.len() >= 4, "{}", plan.tiles.len());
-        assert!(!part.resumed && part.bytes > 0);
-        let budget = part.budget(&limits);
-        let g = globals::globals(&job, &opts, &plan, &work, &budget).unwrap();
+        let p = planned_and_partitioned(d.path());
+        assert!(p.plan.tiles.len() >= 4, "{}", p.plan.tiles.len());
+        assert!(!p.part.resumed && p.part.bytes > 0);
+        let budget = p.part.budget(&p.limits);
+        let g = globals::globals(&p.job, &p.opts, &p.plan, &p.work, &budget).unwrap();
         // Each tile is a task of its own, here in reverse order; the phase then finds them all
         // committed.
-        for t in (0..plan.tiles.len()).rev() {
-            tiles::tile(&job, &opts, &plan, &work, (&budget, &g), t, None).unwrap();
+        for t in (0..p.plan.tiles.len()).rev() {
+            tiles::tile(&p.job, &p.opts, &p.plan, &p.work, (&budget, &g), t, None).unwrap();
         }
-        let tiles = tiles::tiles(&job, &opts, &plan, &work, &budget, &g).unwrap();
-        assert_eq!(tiles.resumed, plan.tiles.len() as u64);
+        let tiles = tiles::tiles(&p.job, &p.opts, &p.plan, &p.work, &budget, &g).unwrap();
+        assert_eq!(tiles.resumed, p.plan.tiles.len() as u64);
         assert_eq!(tiles.stats.moved, whole.stats.moved);
-        let threshold = outliers::threshold(&job, &plan, &work, &tiles.knn_mean).unwrap();
+        let threshold = outliers::threshold(&p.job, &p.plan, &p.work, &tiles.knn_mean).unwrap();
         let stitched = stitch::Stitch {
-            job: &job,
-            opts: &opts,
-            info: &info,
-            plan: &plan,
-            work: &work,
+            job: &p.job,
+            opts: &p.opts,
+            info: &p.info,
+            plan: &p.plan,
+            work: &p.work,
             threshold: &threshold,
         }
         .run()
@@ -215,14 +207,14 @@ mod tests {
         assert_eq!(stitched.found, whole.outliers_found);
         assert_eq!(stitched.written, 20_000);
         assert_eq!(
-            std::fs::read(&job.output).unwrap(),
+            std::fs::read(&p.job.output).unwrap(),
             std::fs::read(d.path().join("a.ply")).unwrap()
         );
 
         // The same plan in the same directory: the partition is committed there.
-        let again = partition::partition(&job, &opts, &plan, &limits, &work).unwrap();
+        let again = partition::partition(&p.job, &p.opts, &p.plan, &p.limits, &p.work).unwrap();
         assert!(again.resumed);
-        assert_eq!(again.bytes, part.bytes);
+        assert_eq!(again.bytes, p.part.bytes);
     }
 
     #[test]
