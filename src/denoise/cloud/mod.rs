@@ -33,98 +33,45 @@
 //! fewer than k points that near is isolated, stays where it is and lends no plane to anyone,
 //! so no result depends on anything farther than that radius per hop.
 //!
-//! Global scalars (the bilateral σc, the mean spacing) come from exact sums ([`ExactSum`]) that
-//! merge across tiles to the same bits as over the whole cloud.
+//! Global scalars (the bilateral σc, the mean spacing, the guarded operator's noise) come from
+//! exact sums that merge across tiles to the same bits as over the whole cloud.
+//!
+//! # Files
+//!
+//! - `mod.rs`: the run ([`CloudRun`], [`run`], [`run_all`]) and the method's passes;
+//! - `globals.rs`: [`Globals`] and their mergeable partials;
+//! - `graph.rs`: the k-NN graph of a run, listed whole or from the wanted points, then capped;
+//! - `taint.rs`: which results are exact (the taint and how it spreads);
+//! - `hops.rs`: how many hops from the wanted points each pass is needed.
+
+mod globals;
+mod graph;
+mod hops;
+mod taint;
+
+pub use globals::{
+    Globals, GlobalsPartial, NOISE_SAMPLE, globals_partial, in_noise_sample, needs_globals,
+};
 
 use glam::DVec3;
 use rayon::prelude::*;
 
+use self::globals::{globals_k, partial_of};
+use self::graph::{Graph, Listing, capped, graph, listing, typical_from_lists};
+use self::hops::{graded, hop_depths, update_reach};
+use self::taint::Taint;
 use super::common::{Within, merge_step, stay};
-use super::frame::Frame;
 use super::guarded::{self, Guard};
-use super::isolation::{cap_one, is_isolated};
 use super::normals::{filter_point_normals, filter_point_normals_within, pca_normals};
 use super::qem::is_duplicate;
-use super::structure::{
-    LocalFit, Structure, class_of, classify_within, local_fit, local_fits_within,
-    noise_scale_within,
-};
+use super::structure::{Structure, classify_within, local_fits_within, noise_scale_within};
 use super::written::of_cycle;
 use super::{DenoiseError, Method, Params, Stats, StructureCounts, Timer, bilateral, qem};
-use crate::geometry::ExactSum;
-use crate::neighbours::{
-    KnnIndex, Listed, Neighbourhoods, NeighboursError, Prune, Seen, keep_near,
-};
+use crate::neighbours::NeighboursError;
 use crate::points::{Aabb, PointNormal};
 
-/// Scalars computed over the whole cloud before the operator runs.
-#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize, serde::Deserialize)]
-pub struct Globals {
-    /// Mean distance from a point to its nearest other point (the point-cloud L); the bilateral
-    /// σc. Zero when the method does not need it.
-    pub spacing: f64,
-    /// The sensor's noise: the median over all points of [`super::structure::near_residual`]
-    /// (the RMS residual of the plane through a point's nearest 8), read as the upper edge of its
-    /// 2 % histogram bin. It caps every guarded step (one scan, one sensor, one noise level, so a
-    /// coarse far-range neighbourhood cannot license a step of its own coarse scale). Zero when
-    /// the method does not need it.
-    #[serde(default)]
-    pub noise: f64,
-}
-
-/// The mergeable parts behind [`Globals`]: partial sums over some points (a tile's owned ones).
-#[derive(Debug, Clone, Default, PartialEq)]
-pub struct GlobalsPartial {
-    /// Nearest-other distances (bilateral).
-    pub spacing: ExactSum,
-    /// Small-scale residuals (the guarded operator).
-    pub noise: super::Displacements,
-}
-
-impl GlobalsPartial {
-    /// Adds another partial.
-    pub fn merge(&mut self, o: &GlobalsPartial) {
-        self.spacing.merge(&o.spacing);
-        self.noise.merge(&o.noise);
-    }
-
-    /// The global scalars.
-    pub fn finish(&self) -> Globals {
-        Globals {
-            spacing: if self.spacing.count() > 0 {
-                self.spacing.mean()
-            } else {
-                0.0
-            },
-            noise: self.noise.quantile(0.5),
-        }
-    }
-}
-
-/// The noise pre-pass reads every point of a cloud of up to twice this many finite points, and
-/// a sample of about this many (at least) of a larger one ([`in_noise_sample`]).
-pub const NOISE_SAMPLE: u64 = 1 << 16;
-
-/// True when the point of global index `index`, in a cloud of `points` finite points, is one the
-/// guarded operator's noise ([`Globals::noise`]) is the median over: every point of a cloud of
-/// fewer than `2 × NOISE_SAMPLE`, otherwise one in `points / NOISE_SAMPLE` (by
-/// [`crate::points::sample_key`], so the sample depends on nothing but the indices: every tile
-/// and the in-memory path draw the same one). Why: the median of 65 536 residuals or more moves
-/// by well under 1 % from the full one, and in a tiled run the pre-pass was a fifth of the CPU
-/// time, a whole k-NN pass of its own (docs/DECISIONS.md, "The noise pre-pass on a sample").
-/// The bilateral spacing, a mean, still reads every point.
-pub fn in_noise_sample(index: u64, points: u64) -> bool {
-    let stride = (points / NOISE_SAMPLE).max(1);
-    crate::points::sample_key(index).is_multiple_of(stride)
-}
-
-/// True when `params` need [`Globals`] (a pre-pass over the whole cloud).
-pub fn needs_globals(params: &Params) -> bool {
-    params.method == Method::Bilateral || guarded_qem(params)
-}
-
 /// True when `params` run the guarded QEM operator.
-fn guarded_qem(params: &Params) -> bool {
+pub(super) fn guarded_qem(params: &Params) -> bool {
     params.method == Method::Qem && params.guard
 }
 
@@ -136,117 +83,9 @@ fn settles(params: &Params) -> bool {
 }
 
 /// The hops left, out of [`reach`], within which a run computes the classes (so a point that
-/// stays may stop the listing there, [`Prune::least`]); `None` when points do not settle.
+/// stays may stop the listing there, [`crate::neighbours::Prune::least`]); `None` when points do not settle.
 fn stops(params: &Params) -> Option<usize> {
     settles(params).then(|| reach(params).saturating_sub(graded(&params.schedule(false)).classes))
-}
-
-/// The partials behind [`Globals`] over the points `counted` selects, and for each point whether
-/// its contribution is exact (its k-NN ball inside the region). `counted(i, exact)` is asked
-/// with that answer, so a tile sums only its exact contributions in the same pass (it used to
-/// run the pass again once it knew which were exact: twice the cost of every tile with a
-/// narrowed halo).
-///
-/// For the guarded operator only the points of the noise sample ([`in_noise_sample`], over a
-/// cloud of `points` finite points) are listed and counted; the others are reported exact, as
-/// nothing of theirs is summed.
-///
-/// # Errors
-/// Fewer than two points.
-pub fn globals_partial(
-    run: &CloudRun,
-    params: &Params,
-    points: u64,
-    counted: impl Fn(usize, bool) -> bool + Sync,
-) -> Result<(GlobalsPartial, Vec<bool>), DenoiseError> {
-    let kg = globals_k(params);
-    let sampled: Option<Vec<bool>> = guarded_qem(params).then(|| {
-        (0..run.positions.len())
-            .map(|i| run.wanted.is_none_or(|w| w[i]) && in_noise_sample(run.ties[i], points))
-            .collect()
-    });
-    let run = CloudRun {
-        wanted: sampled.as_deref().or(run.wanted),
-        ..*run
-    };
-    let g = graph(&run, kg, 0, None)?;
-    let exact_f = Taint::of(&run, &g).seeds;
-    let mut exact = vec![false; run.positions.len()];
-    for (j, &i) in g.frame.order.iter().enumerate() {
-        exact[i as usize] = !exact_f[j];
-    }
-    let part = partial_of(params, &g, kg, |i| {
-        sampled.as_ref().is_none_or(|s| s[i]) && counted(i, exact[i])
-    });
-    if let Some(s) = &sampled {
-        for (e, &s) in exact.iter_mut().zip(s) {
-            *e |= !s;
-        }
-    }
-    Ok((part, exact))
-}
-
-/// List length of the pre-pass behind [`Globals`]: the small-scale fit's [`NEAR`] for the
-/// guarded operator, 2 (the point and its nearest other) for the bilateral spacing.
-///
-/// [`NEAR`]: super::structure::NEAR
-fn globals_k(params: &Params) -> usize {
-    if guarded_qem(params) {
-        super::structure::NEAR
-    } else {
-        2
-    }
-}
-
-/// The partials behind [`Globals`] over the points `counted` selects (input indices), from a
-/// graph whose lists hold the `kg` nearest or more.
-///
-/// The result is that of the `kg`-NN graph to the bit: lists are sorted by (squared distance, tie
-/// key), a total order, so the first `kg` members of an exact longer list are the exact
-/// `kg`-NN list; and a point is isolated at `kg` exactly when fewer than `kg` of its list lie
-/// within the isolation radius (its `kg`-th nearest lies beyond it), which for a capped list is
-/// its length.
-fn partial_of(
-    params: &Params,
-    g: &Graph,
-    kg: usize,
-    counted: impl Fn(usize) -> bool + Sync,
-) -> GlobalsPartial {
-    let (frame, lists) = (&g.frame, &g.lists);
-    // An isolated point has no spacing or noise of its own: it is never smoothed.
-    let take =
-        |j: usize| counted(frame.order[j] as usize) && !(g.isolated[j] && lists.get(j).len() < kg);
-    // Residuals of the counted points only (a sample of a large cloud), in parallel.
-    let near: Vec<Option<f64>> = if guarded_qem(params) {
-        (0..frame.positions.len())
-            .into_par_iter()
-            .with_min_len(1024)
-            .map(|j| {
-                take(j).then(|| super::structure::near_residual(&frame.positions, lists.get(j), j))
-            })
-            .collect()
-    } else {
-        Vec::new()
-    };
-    let mut part = GlobalsPartial::default();
-    for j in 0..frame.positions.len() {
-        if !take(j) {
-            continue;
-        }
-        let list = lists.get(j);
-        if params.method == Method::Bilateral
-            && let Some(&u) = list[..list.len().min(kg)]
-                .iter()
-                .find(|&&u| u as usize != j)
-        {
-            part.spacing.add(g.index.dist2(j, u as usize).sqrt());
-        }
-        if let Some(&Some(r)) = near.get(j) {
-            part.noise.add(r);
-        }
-    }
-    part.noise.refresh();
-    part
 }
 
 /// Number of k-NN graph hops a result depends on (see the module overview).
@@ -359,374 +198,6 @@ impl CloudResult {
         s.book_moves(input, &self.positions, &self.stayed, counted);
         stats.merge(&s);
     }
-}
-
-/// The k-NN graph of a run in spatial order, capped at the isolation radius.
-struct Graph {
-    /// The run's points in spatial order.
-    frame: Frame,
-    /// Lists in frame indices, capped at the run's isolation radius.
-    lists: Neighbourhoods,
-    /// Squared radius of each list (the cap for a capped one).
-    radii: Vec<f64>,
-    /// The index the lists come from.
-    index: KnnIndex,
-    /// Which lists were capped (shorter than k).
-    capped: Vec<bool>,
-    /// Which points are isolated: capped lists shorter than
-    /// [`super::isolation::least_list`].
-    isolated: Vec<bool>,
-    /// Which points have their own list (empty: all): the others' results are not exact.
-    listed: Vec<bool>,
-}
-
-/// [`CloudRun::wanted`] points are listed round by round (with what they depend on) only when
-/// they are at most this share of the run: every further hop costs a grid pass over the whole
-/// run. Above it every list is computed in one pass and those no wanted point depends on are
-/// dropped ([`keep_near`]).
-const WANTED_SHARE: f64 = 0.25;
-
-/// Builds the k-NN graph of a run in spatial order; with [`CloudRun::wanted`] points, only the
-/// lists within `hops` hops of them (the others' results are not exact, and cost nothing in the
-/// passes that follow).
-/// With `stops` (hops left, see [`Prune::least`]), round by round listing does not follow the
-/// points that stay ([`Stays`]).
-fn graph(
-    run: &CloudRun,
-    k: usize,
-    hops: usize,
-    stops: Option<usize>,
-) -> Result<Graph, DenoiseError> {
-    Ok(capped(run, k, listing(run, k, hops, stops)?))
-}
-
-/// A run's k-NN lists before the isolation cap ([`graph`]'s first half).
-struct Listing {
-    frame: Frame,
-    index: KnnIndex,
-    lists: Neighbourhoods,
-    radii: Vec<f64>,
-    listed: Vec<bool>,
-}
-
-/// The lists of [`graph`], not capped yet. Without [`CloudRun::wanted`] points the run's
-/// isolation radius is not read.
-fn listing(
-    run: &CloudRun,
-    k: usize,
-    hops: usize,
-    stops: Option<usize>,
-) -> Result<Listing, DenoiseError> {
-    let frame = Frame::new(run.positions, Some(run.ties));
-    let index = KnnIndex::build_with_ties(&frame.positions, run.origin, frame.ties.clone())?;
-    let seeds: Option<(Vec<bool>, bool)> = run.wanted.map(|w| {
-        let n = w.iter().filter(|&&x| x).count();
-        let few = n as f64 <= WANTED_SHARE * w.len() as f64;
-        (frame.order.iter().map(|&i| w[i as usize]).collect(), few)
-    });
-    let (lists, radii, listed) = match seeds {
-        Some((s, true)) => {
-            let mut stays = Stays {
-                pos: &frame.positions,
-                index: &index,
-                cap2: run.isolation.map(|c| c * c),
-                least: super::isolation::least_list(k, run.short_lists),
-                own: vec![None; s.len()],
-                members: Vec::new(),
-                buf: Vec::new(),
-            };
-            let mut seen = |x: u32, listed: &Listed, decide: bool| stays.seen(x, listed, decide);
-            let prune = stops.map(|least| Prune {
-                seen: &mut seen,
-                least,
-            });
-            index.knn_near(k, &s, hops, prune)?
-        }
-        Some((s, false)) => {
-            let (lists, radii) = index.knn_all(k)?;
-            keep_near(lists, radii, &s, hops)
-        }
-        None => {
-            let (lists, radii) = index.knn_all(k)?;
-            (lists, radii, Vec::new())
-        }
-    };
-    Ok(Listing {
-        frame,
-        index,
-        lists,
-        radii,
-        listed,
-    })
-}
-
-/// [`graph`] from its [`listing`]: the lists capped at the run's isolation radius.
-fn capped(run: &CloudRun, k: usize, listing: Listing) -> Graph {
-    let Listing {
-        frame,
-        index,
-        lists,
-        radii,
-        listed,
-    } = listing;
-    let (lists, radii, capped) =
-        super::isolation::cap_lists(lists, radii, run.isolation, |i, u| index.dist2(i, u));
-    let least = super::isolation::least_list(k, run.short_lists);
-    let isolated = (0..lists.len())
-        .map(|i| is_isolated(capped[i], lists.get(i).len(), least))
-        .collect();
-    Graph {
-        frame,
-        lists,
-        radii,
-        index,
-        capped,
-        isolated,
-        listed,
-    }
-}
-
-/// [`super::isolation::typical_radius`] of a whole cloud of `population` points from its own
-/// uncapped lists of `k`, when the planner's sample is that cloud (at most
-/// [`super::isolation::SAMPLE`] points, the run's order being the global-index order): each
-/// probe's distance to its `ks`-th sample neighbour is its list's entry `ks` (lists are sorted by
-/// distance, the same distances to the bit). `None` when lists of `k` are too short for it.
-fn typical_from_lists(l: &Listing, population: u64, k: usize) -> Option<Option<f64>> {
-    let n = l.frame.positions.len();
-    let Some((probes, ks)) = super::isolation::probes(n) else {
-        return Some(None);
-    };
-    if ks >= k {
-        return None;
-    }
-    let radii = probes
-        .map(|i| {
-            let j = l.frame.working(i);
-            l.lists
-                .get(j)
-                .get(ks)
-                .map_or(0.0, |&u| l.index.dist2(j, u as usize).sqrt())
-        })
-        .collect();
-    Some(super::isolation::typical_of(radii, n, population, k, ks))
-}
-
-/// Whether a listed point stays where it is whatever lies past its members' lists: its class,
-/// from its capped list and its members' own classes and radii, does not move (the rule of
-/// `run_on`'s `settled`, computed as the lists are found).
-struct Stays<'a> {
-    pos: &'a [DVec3],
-    index: &'a KnnIndex,
-    /// The isolation radius, squared.
-    cap2: Option<f64>,
-    /// Shortest list of a point that is not isolated.
-    least: usize,
-    /// Each listed point's own class, capped squared radius and members kept, once computed.
-    own: Vec<Option<(Structure, f64, usize)>>,
-    /// Scratch: the members of the point being decided, and their radii for the median.
-    members: Vec<(u32, Structure, f64)>,
-    buf: Vec<f64>,
-}
-
-impl Stays<'_> {
-    /// Point `u`'s own class, capped squared radius and members kept (`None` before its list).
-    fn own(&mut self, u: u32, listed: &Listed) -> Option<(Structure, f64, usize)> {
-        if let Some(o) = self.own[u as usize] {
-            return Some(o);
-        }
-        let (list, r2) = listed.get(u)?;
-        let index = self.index;
-        let (kept, r2, capped) = match self.cap2 {
-            Some(c) => cap_one(list, r2, c, |w| index.dist2(u as usize, w as usize)),
-            None => (list.len(), r2, false),
-        };
-        let class = if is_isolated(capped, kept, self.least) {
-            LocalFit::isolated().own
-        } else {
-            local_fit(self.pos, &list[..kept], u as usize).own
-        };
-        self.own[u as usize] = Some((class, r2, kept));
-        Some((class, r2, kept))
-    }
-
-    fn seen(&mut self, x: u32, listed: &Listed, decide: bool) -> Seen {
-        let Some((own, r2, kept)) = self.own(x, listed) else {
-            return Seen {
-                members: 0,
-                stays: None,
-            };
-        };
-        let undecided = Seen {
-            members: kept,
-            stays: None,
-        };
-        if !decide {
-            return undecided;
-        }
-        let Some((list, _)) = listed.get(x) else {
-            return undecided;
-        };
-        let mut members = std::mem::take(&mut self.members);
-        members.clear();
-        for &u in &list[..kept] {
-            match self.own(u, listed) {
-                Some((c, r, _)) => members.push((u, c, r)),
-                None => {
-                    self.members = members;
-                    return undecided;
-                }
-            }
-        }
-        let class = class_of(
-            x as usize,
-            (own, r2),
-            members.iter().copied(),
-            &mut self.buf,
-        );
-        self.members = members;
-        Seen {
-            members: kept,
-            stays: Some(!class.moves()),
-        }
-    }
-}
-
-/// Each point's number of hops from a seed along `lists` (a point `u` in the list of a point at
-/// depth `d` is at most at depth `d + 1`), counted up to `most`; `u8::MAX` beyond.
-fn hop_depths(lists: &Neighbourhoods, seeds: &[bool], most: usize) -> Vec<u8> {
-    let mut depth: Vec<u8> = seeds.iter().map(|&s| if s { 0 } else { u8::MAX }).collect();
-    let mut frontier: Vec<u32> = (0..seeds.len() as u32)
-        .filter(|&i| seeds[i as usize])
-        .collect();
-    for d in 1..=most.min(u8::MAX as usize - 1) {
-        let mut next = Vec::new();
-        for &i in &frontier {
-            for &u in lists.get(i as usize) {
-                if depth[u as usize] == u8::MAX {
-                    depth[u as usize] = d as u8;
-                    next.push(u);
-                }
-            }
-        }
-        frontier = next;
-    }
-    depth
-}
-
-/// The points update `u` (of `updates`, from 0) of the last cycle must move for the wanted points'
-/// results: the update after it reads the positions of its list members, one hop further, so
-/// update `u` is needed within `updates − 1 − u` hops; the first update's offsets also give the
-/// gains, which read the offsets of the list (one hop more). Elsewhere nothing reads the result.
-fn update_reach(depth: &[u8], updates: usize, u: usize) -> Vec<bool> {
-    let reach = updates - 1 - u + usize::from(u == 0);
-    depth.iter().map(|&d| (d as usize) <= reach).collect()
-}
-
-/// How many hops from the wanted points each pass of a guarded cycle is needed (see
-/// [`graded`]).
-struct Graded {
-    /// What the updates read of a point and its list members: the noise scales and the filtered
-    /// normals.
-    guard: usize,
-    /// The classes (and so the planes the normal filter starts from).
-    classes: usize,
-    /// The local fits.
-    fits: usize,
-}
-
-/// The passes of a guarded cycle graded by hops from the wanted points (the points whose
-/// updates' results are kept). Update `u` of `U` moves the points within `U − 1 − u` hops (one
-/// more for the first, whose offsets give the gains, [`update_reach`]), so the farthest update
-/// reads a point `U` hops out and its list members, `U + 1` hops out: that is where the noise
-/// scales and the filtered normals are needed. Each of the `F` filter iterations reads its input
-/// one hop further, so the planes it starts from (the fits' normals where the class takes
-/// planes) are needed `U + 1 + F` hops out; a class reads its list members' fits, one hop more.
-/// Farther out a pass gives a placeholder that no kept result reads.
-fn graded(sched: &super::Schedule) -> Graded {
-    let guard = sched.updates + 1;
-    let classes = guard + sched.filter;
-    Graded {
-        guard,
-        classes,
-        fits: classes + 1,
-    }
-}
-
-/// True where the k-NN ball of a point lies strictly inside `region` (so its list is complete).
-fn inside(region: &Aabb, p: DVec3, r2: f64) -> bool {
-    let lo = p - region.min;
-    let hi = region.max - p;
-    let d = lo.min(hi).min_element();
-    // A relative margin covers the rounding of the squared distances.
-    d > 0.0 && d * d > r2 * (1.0 + 1e-9) + f64::MIN_POSITIVE
-}
-
-/// Where a run's results may differ from the whole cloud's: seeded by the points without a list
-/// of their own and those whose k-NN ball leaves the region (and is not proven complete), then
-/// spread hop by hop to every point whose list holds a tainted one ([`Taint::spread`]).
-struct Taint {
-    /// Hop 0: the seeds.
-    seeds: Vec<bool>,
-    /// Hop 1: what a point's class reads (its own list, its members' fits and radii).
-    class: Vec<bool>,
-    /// False for a run without a region: only its unlisted points are unknown, and the lists
-    /// of every point within the reach of a wanted one are computed, so nothing spreads.
-    spreads: bool,
-}
-
-impl Taint {
-    fn of(run: &CloudRun, g: &Graph) -> Taint {
-        let (pos, lists, radii) = (&g.frame.positions, &g.lists, &g.radii);
-        let unlisted = |i: usize| g.listed.get(i).is_some_and(|l| !l);
-        let Some(region) = run.region.as_ref() else {
-            let seeds: Vec<bool> = (0..pos.len()).map(unlisted).collect();
-            return Taint {
-                class: seeds.clone(),
-                seeds,
-                spreads: false,
-            };
-        };
-        let seeds: Vec<bool> = (0..pos.len())
-            .into_par_iter()
-            .map(|i| {
-                unlisted(i)
-                    || (!inside(region, pos[i], radii[i])
-                        && !run.complete.is_some_and(|c| c(pos[i], radii[i])))
-            })
-            .collect();
-        let class = spread_once(lists, &seeds, None);
-        Taint {
-            seeds,
-            class,
-            spreads: true,
-        }
-    }
-
-    /// The taint after `hops` hops, not spread through the `blocked` points: those whose
-    /// contribution to the points listing them is exact whatever lies farther out.
-    fn spread(&self, lists: &Neighbourhoods, hops: usize, blocked: &[bool]) -> Vec<bool> {
-        let mut t = self.seeds.clone();
-        if !self.spreads {
-            return t;
-        }
-        for _ in 0..hops {
-            let next = spread_once(lists, &t, Some(blocked));
-            if next == t {
-                break;
-            }
-            t = next;
-        }
-        t
-    }
-}
-
-/// One hop of taint: `t` and every point whose list holds a tainted point that is not `blocked`.
-fn spread_once(lists: &Neighbourhoods, t: &[bool], blocked: Option<&[bool]>) -> Vec<bool> {
-    let passes = |u: u32| t[u as usize] && blocked.is_none_or(|b| !b[u as usize]);
-    (0..t.len())
-        .into_par_iter()
-        .map(|i| t[i] || lists.get(i).iter().any(|&u| passes(u)))
-        .collect()
 }
 
 /// [`NeighboursError::Cancelled`] once the cancel flag installed on this thread
