@@ -34,7 +34,7 @@ pub(super) struct Graph {
 /// they are at most this share of the run: every further hop costs a grid pass over the whole
 /// run. Above it every list is computed in one pass and those no wanted point depends on are
 /// dropped ([`keep_near`]).
-pub(super) const WANTED_SHARE: f64 = 0.25;
+const WANTED_SHARE: f64 = 0.25;
 
 /// Builds the k-NN graph of a run in spatial order; with [`CloudRun::wanted`] points, only the
 /// lists within `hops` hops of them (the others' results are not exact, and cost nothing in the
@@ -166,7 +166,7 @@ pub(super) fn typical_from_lists(l: &Listing, population: u64, k: usize) -> Opti
 /// Whether a listed point stays where it is whatever lies past its members' lists: its class,
 /// from its capped list and its members' own classes and radii, does not move (the rule of
 /// `run_on`'s `settled`, computed as the lists are found).
-pub(super) struct Stays<'a> {
+struct Stays<'a> {
     pos: &'a [DVec3],
     index: &'a KnnIndex,
     /// The isolation radius, squared.

@@ -11,7 +11,7 @@ use crate::neighbours::Neighbourhoods;
 use crate::points::Aabb;
 
 /// True where the k-NN ball of a point lies strictly inside `region` (so its list is complete).
-pub(super) fn inside(region: &Aabb, p: DVec3, r2: f64) -> bool {
+fn inside(region: &Aabb, p: DVec3, r2: f64) -> bool {
     let lo = p - region.min;
     let hi = region.max - p;
     let d = lo.min(hi).min_element();
@@ -84,11 +84,7 @@ impl Taint {
 }
 
 /// One hop of taint: `t` and every point whose list holds a tainted point that is not `blocked`.
-pub(super) fn spread_once(
-    lists: &Neighbourhoods,
-    t: &[bool],
-    blocked: Option<&[bool]>,
-) -> Vec<bool> {
+fn spread_once(lists: &Neighbourhoods, t: &[bool], blocked: Option<&[bool]>) -> Vec<bool> {
     let passes = |u: u32| t[u as usize] && blocked.is_none_or(|b| !b[u as usize]);
     (0..t.len())
         .into_par_iter()
