@@ -207,7 +207,9 @@ fn normals_and_solve(c: &mut Criterion) {
 fn guarded_stages(c: &mut Criterion) {
     use qem_denoise::denoise::guarded::{self, Guard};
     use qem_denoise::denoise::normals::filter_point_normals;
-    use qem_denoise::denoise::structure::{classify, local_fits, near_residuals, noise_scale};
+    use qem_denoise::denoise::structure::{
+        classify, local_fits, near_residuals, noise_scale, planes,
+    };
     let pts = cloud(size());
     let index = KnnIndex::build(&pts, origin_of(&pts)).unwrap();
     let (lists, radii) = index.knn_all(16).unwrap();
@@ -219,17 +221,7 @@ fn guarded_stages(c: &mut Criterion) {
     let classes = classify(&fits, &lists, &radii);
     let noise = noise_scale(&fits, &lists);
     let bound: Vec<f64> = noise.iter().map(|s| s.min(global)).collect();
-    let planes: Vec<DVec3> = fits
-        .iter()
-        .zip(&classes)
-        .map(|(f, c)| {
-            if c.takes_planes() {
-                f.normal
-            } else {
-                DVec3::ZERO
-            }
-        })
-        .collect();
+    let planes = planes(&fits, &classes);
     let normals = filter_point_normals(&pts, &lists, &radii, &planes, 0.2, 3);
     let mut g = c.benchmark_group("guarded_k16");
     g.sample_size(10);

@@ -19,7 +19,7 @@ use cpu_time::ProcessTime;
 use glam::DVec3;
 use qem_denoise::denoise::guarded::{self, Guard};
 use qem_denoise::denoise::normals::filter_point_normals;
-use qem_denoise::denoise::structure::{classify, local_fits, near_residuals, noise_scale};
+use qem_denoise::denoise::structure::{classify, local_fits, near_residuals, noise_scale, planes};
 use qem_denoise::denoise::{Params, origin_of};
 use qem_denoise::io::Cloud;
 use qem_denoise::neighbours::{KnnIndex, spatial_order};
@@ -126,17 +126,7 @@ fn main() -> anyhow::Result<()> {
         return Ok(());
     }
     let bound: Vec<f64> = noise.iter().map(|s| s.min(global)).collect();
-    let planes: Vec<DVec3> = fits
-        .iter()
-        .zip(&classes)
-        .map(|(f, c)| {
-            if c.takes_planes() {
-                f.normal
-            } else {
-                DVec3::ZERO
-            }
-        })
-        .collect();
+    let planes = planes(&fits, &classes);
     let mut normals = Vec::new();
     time("filter", &mut || {
         normals = filter_point_normals(&pts, &lists, &radii, &planes, 0.2, 3);

@@ -205,6 +205,21 @@ pub fn local_fit(pos: &[DVec3], list: &[u32], i: usize) -> LocalFit {
     fit_of(pca_fit(list.iter().map(|&u| pos[u as usize] - v)))
 }
 
+/// The plane each point offers the normal filter: its fit's normal where its class takes planes
+/// ([`Structure::takes_planes`]), zero (no plane) otherwise.
+pub fn planes(fits: &[LocalFit], classes: &[Structure]) -> Vec<DVec3> {
+    fits.iter()
+        .zip(classes)
+        .map(|(f, c)| {
+            if c.takes_planes() {
+                f.normal
+            } else {
+                DVec3::ZERO
+            }
+        })
+        .collect()
+}
+
 /// Final classes: [`Structure::Sparse`] for points whose own k-NN radius (`radii` squared) is at
 /// least [`SPARSE`] times the median of their list members', [`Structure::Edge`] for non-surface
 /// points whose list is mostly surface, the own class otherwise.

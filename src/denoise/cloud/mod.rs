@@ -64,7 +64,7 @@ use super::common::{Within, merge_step, stay};
 use super::guarded::{self, Guard};
 use super::normals::{filter_point_normals, filter_point_normals_within, pca_normals};
 use super::qem::is_duplicate;
-use super::structure::{Structure, classify_within, local_fits_within, noise_scale_within};
+use super::structure::{Structure, classify_within, local_fits_within, noise_scale_within, planes};
 use super::written::of_cycle;
 use super::{DenoiseError, Method, Params, Stats, StructureCounts, Timer, bilateral, qem};
 use crate::neighbours::NeighboursError;
@@ -347,17 +347,7 @@ fn run_on(
                     .map(|j| classed.has(j) && !classes[j].moves())
                     .collect();
             }
-            let planes: Vec<DVec3> = fits
-                .iter()
-                .zip(&classes)
-                .map(|(f, c)| {
-                    if c.takes_planes() {
-                        f.normal
-                    } else {
-                        DVec3::ZERO
-                    }
-                })
-                .collect();
+            let planes = planes(&fits, &classes);
             let normals = filter_point_normals_within(
                 &cur,
                 &lists,
