@@ -404,6 +404,7 @@ fn synth_noise_eval_render_round_trip() {
 }
 
 #[test]
+#[cfg_attr(debug_assertions, ignore = "release only: heavy in the debug build")]
 fn demo_writes_its_files() {
     let dir = tempfile::tempdir().unwrap();
     let o = qemd(&["demo", "--out", s(dir.path())]);

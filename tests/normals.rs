@@ -336,6 +336,7 @@ fn issue9_write_normals_ascii_ply_and_a_foreign_xyz_header_name_the_columns() {
 // Tiled = in memory.
 
 #[test]
+#[cfg_attr(debug_assertions, ignore = "release only: heavy in the debug build")]
 fn issue9_write_normals_tiled_writes_the_in_memory_bytes() {
     let dir = tempfile::tempdir().unwrap();
     let pts = sheet(20_000, 3);

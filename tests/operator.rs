@@ -75,6 +75,7 @@ fn bits(v: &[DVec3]) -> Vec<[u64; 3]> {
 }
 
 #[test]
+#[cfg_attr(debug_assertions, ignore = "release only: heavy in the debug build")]
 fn output_is_identical_for_any_thread_count() {
     let cloud = noisy_sphere(6000, 0.01, 1);
     let (grid, faces) = noisy_grid(60, 0.004, 2);

@@ -77,6 +77,7 @@ fn seek_reads_the_tail(input: &Path, at: u64) {
 }
 
 #[test]
+#[cfg_attr(debug_assertions, ignore = "release only: heavy in the debug build")]
 fn issue11_binary_ply_pcd_and_kitti_partitioned_in_parts_write_the_bytes_of_one_part() {
     let d = tempfile::tempdir().unwrap();
     let input = d.path().join("in.ply");

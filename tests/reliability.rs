@@ -154,6 +154,7 @@ fn issue15_hostile_laz_layer_size_is_an_error_without_a_big_allocation() {
 /// Issue 15, item 3: any single flipped byte of a small layered LAZ gives an error or a cloud,
 /// never an abort or a large allocation.
 #[test]
+#[cfg_attr(debug_assertions, ignore = "release only: heavy in the debug build")]
 fn issue15_flipped_bytes_in_a_laz_never_abort() {
     let dir = tempfile::tempdir().unwrap();
     let laz = layered_laz(dir.path(), 1500);

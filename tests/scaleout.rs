@@ -103,6 +103,7 @@ pub fn reference(d: &Path, input: &Path) -> Vec<u8> {
 }
 
 #[test]
+#[cfg_attr(debug_assertions, ignore = "release only: heavy in the debug build")]
 fn issue11_tasks_in_any_number_and_order_write_the_denoise_bytes() {
     let d = tempfile::tempdir().unwrap();
     let input = d.path().join("in.ply");
@@ -155,6 +156,7 @@ fn issue11_tasks_in_any_number_and_order_write_the_denoise_bytes() {
 }
 
 #[test]
+#[cfg_attr(debug_assertions, ignore = "release only: heavy in the debug build")]
 fn issue11_a_killed_task_rerun_and_finish_alone_give_the_same_bytes() {
     let d = tempfile::tempdir().unwrap();
     let input = d.path().join("in.ply");
@@ -350,6 +352,7 @@ fn kill_midway(work: &Path, phase: &str, midway: impl Fn(&[String]) -> bool) -> 
 }
 
 #[test]
+#[cfg_attr(debug_assertions, ignore = "release only: heavy in the debug build")]
 fn issue11_partition_and_stitch_killed_midway_rerun_to_the_same_bytes() {
     let d = tempfile::tempdir().unwrap();
     let input = d.path().join("in.ply");

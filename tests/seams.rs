@@ -156,6 +156,7 @@ const SIZES: &[u64] = if cfg!(debug_assertions) {
 };
 
 #[test]
+#[cfg_attr(debug_assertions, ignore = "release only: heavy in the debug build")]
 fn surface_with_outliers_any_tile_size() {
     let d = tempfile::tempdir().unwrap();
     let input = write(d.path(), "surface.ply", surface(4000, 1));
@@ -164,6 +165,7 @@ fn surface_with_outliers_any_tile_size() {
 }
 
 #[test]
+#[cfg_attr(debug_assertions, ignore = "release only: heavy in the debug build")]
 fn clustered_cloud_with_removed_outliers() {
     let d = tempfile::tempdir().unwrap();
     let input = write(d.path(), "clusters.ply", clustered(3000, 2));
@@ -198,6 +200,7 @@ fn duplicate_heavy_lattice_with_empty_tiles() {
 }
 
 #[test]
+#[cfg_attr(debug_assertions, ignore = "release only: heavy in the debug build")]
 fn sparse_volume_iterated_operator() {
     let d = tempfile::tempdir().unwrap();
     let input = write(d.path(), "sparse.ply", sparse(2500, 4));
@@ -216,6 +219,7 @@ fn sparse_volume_iterated_operator() {
 /// (This fails when the reach is far too short, as at 1 hop; a reach one hop short is within the
 /// halo's margin and passes.)
 #[test]
+#[cfg_attr(debug_assertions, ignore = "release only: heavy in the debug build")]
 fn guarded_gains_with_one_update_per_cycle() {
     let d = tempfile::tempdir().unwrap();
     let input = write(d.path(), "one_update.ply", surface(3000, 6));
@@ -234,6 +238,7 @@ fn guarded_gains_with_one_update_per_cycle() {
 /// about 8 points within 0.25 of each point, so some lists are shorter than 16 and still serve,
 /// and the points with fewer than 8 keep their position.
 #[test]
+#[cfg_attr(debug_assertions, ignore = "release only: heavy in the debug build")]
 fn issue9_radius_caps_lists_any_tile_size() {
     let d = tempfile::tempdir().unwrap();
     let input = write(d.path(), "radius.ply", surface(4000, 8));
@@ -259,6 +264,7 @@ fn issue9_radius_caps_lists_any_tile_size() {
 /// of cloud on which the cap's unit test in `denoise::cloud` finds it holding the largest
 /// moves), the tiled bytes are the in-memory bytes.
 #[test]
+#[cfg_attr(debug_assertions, ignore = "release only: heavy in the debug build")]
 fn issue9_reach_cap_any_tile_size() {
     let d = tempfile::tempdir().unwrap();
     let mut r = Rng(99);
@@ -279,6 +285,7 @@ fn issue9_reach_cap_any_tile_size() {
 /// `--classes`: points of other classes keep their position in every tile, as in memory, and
 /// the tiled bytes are the in-memory bytes.
 #[test]
+#[cfg_attr(debug_assertions, ignore = "release only: heavy in the debug build")]
 fn issue9_classes_hold_the_others_any_tile_size() {
     use std::fmt::Write as _;
     let d = tempfile::tempdir().unwrap();

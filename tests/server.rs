@@ -274,6 +274,7 @@ fn run_job(c: &Client, s: &Server, body: Value) -> (Value, Vec<u8>) {
 }
 
 #[test]
+#[cfg_attr(debug_assertions, ignore = "release only: heavy in the debug build")]
 fn ply_and_las_jobs_write_what_the_cli_writes() {
     let d = tempfile::tempdir().unwrap();
     // Tiles of 2000 points: the service runs these clouds tiled, the CLI in memory.
@@ -882,6 +883,7 @@ fn jobs_running(c: &Client, s: &Server) -> String {
 }
 
 #[test]
+#[cfg_attr(debug_assertions, ignore = "release only: heavy in the debug build")]
 fn full_queue_answers_429_and_delete_cancels_within_a_second() {
     let d = tempfile::tempdir().unwrap();
     let n = long_job_points();
@@ -968,6 +970,7 @@ fn full_queue_answers_429_and_delete_cancels_within_a_second() {
 }
 
 #[test]
+#[cfg_attr(debug_assertions, ignore = "release only: heavy in the debug build")]
 fn killed_server_resumes_the_job_from_its_checkpoints() {
     let d = tempfile::tempdir().unwrap();
     let config = "job_tile_points = 1000\n";
@@ -1096,6 +1099,7 @@ fn operations_endpoints_and_graceful_shutdown() {
 }
 
 #[test]
+#[cfg_attr(debug_assertions, ignore = "release only: heavy in the debug build")]
 fn sigterm_puts_a_running_job_back_in_the_queue() {
     let d = tempfile::tempdir().unwrap();
     let config = "job_tile_points = 1000\n";
@@ -1318,6 +1322,7 @@ fn issue15_job_over_its_time_limit_fails_and_the_next_job_runs() {
 /// Issue 15: a synchronous request over `sync_time_limit` is stopped and answered 504 with a
 /// problem body, counted as `timeout`; the slot is free for the next request.
 #[test]
+#[cfg_attr(debug_assertions, ignore = "release only: heavy in the debug build")]
 fn issue15_sync_request_over_its_time_limit_answers_504() {
     let d = tempfile::tempdir().unwrap();
     let config = "sync_time_limit = \"1s\"\nsync_concurrency = 1\nmax_sync_size = \"512 MiB\"\n";

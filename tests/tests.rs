@@ -1,7 +1,10 @@
 //! The integration tests, one binary (as ripgrep's `tests/tests.rs`): one module per area, the
 //! helpers they share in [`util`]. `cargo test --test tests seams::` runs one module's tests;
 //! tests marked `#[ignore = "needs ../shared"]` read the real data beside the repository and run
-//! with `cargo test --release -- --include-ignored`.
+//! with `cargo test --release -- --include-ignored`. Tests that take more than about ten seconds
+//! in the debug build carry `#[cfg_attr(debug_assertions, ignore = "release only: …")]`: plain
+//! `cargo test` stays a few minutes, and the release run (which CI does) runs them all
+//! (docs/DECISIONS.md, "`cargo test` in minutes").
 
 mod util;
 

@@ -284,6 +284,7 @@ mod tests {
     }
 
     #[test]
+    #[cfg_attr(debug_assertions, ignore = "release only: heavy in the debug build")]
     fn typical_radius_equals_brute_force_with_duplicates_and_non_finite_points() {
         use rand::{RngExt, SeedableRng};
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(16);

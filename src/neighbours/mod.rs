@@ -804,6 +804,7 @@ mod tests {
         /// k-NN agrees exactly with the brute-force oracle, ties included (grid clouds are full of
         /// equal distances and duplicates).
         #[test]
+        #[cfg_attr(debug_assertions, ignore = "release only: heavy in the debug build")]
         fn knn_matches_brute_force(seed in 0u64..10_000, n in 1usize..300, k in 1usize..20,
                                    grid in any::<bool>()) {
             let pts = cloud(seed, n, grid);
@@ -840,6 +841,7 @@ mod tests {
         /// With explicit tie keys (a shuffled global numbering), k-NN ranks equidistant points
         /// by key, exactly as the oracle does.
         #[test]
+        #[cfg_attr(debug_assertions, ignore = "release only: heavy in the debug build")]
         fn knn_with_ties_matches_brute_force(seed in 0u64..10_000, n in 20usize..300,
                                              k in 1usize..20) {
             let pts = cloud(seed, n, true);
@@ -994,6 +996,7 @@ mod tests {
     /// point at 10⁶ took 40 µs per query instead of 1): the work per query must not depend on
     /// how far the outlier is, and the answer must stay the oracle's.
     #[test]
+    #[cfg_attr(debug_assertions, ignore = "release only: heavy in the debug build")]
     fn issue15_far_outlier_knn_is_bounded() {
         let k = 16;
         let base = surface(20_000, 5);
@@ -1029,6 +1032,7 @@ mod tests {
     /// Dense clusters, duplicates, a stack of 60 coincident points and far outliers: every grid
     /// query scans a bounded block, and the answer is the oracle's everywhere.
     #[test]
+    #[cfg_attr(debug_assertions, ignore = "release only: heavy in the debug build")]
     fn cluttered_scene_is_exact_with_bounded_blocks() {
         for (seed, far) in [(1, 500.0), (2, 1e5), (3, 1e9)] {
             let pts = cluttered(4000, far, seed);
@@ -1059,6 +1063,7 @@ mod tests {
     /// follow the space most points stand for, the cluster refines, and the answer stays the
     /// oracle's.
     #[test]
+    #[cfg_attr(debug_assertions, ignore = "release only: heavy in the debug build")]
     fn issue16_a_dense_cluster_beside_a_surface_leaves_few_queries_to_the_tree() {
         let mut r = Rng(11);
         let mut pts = surface(12_000, 3);
@@ -1097,6 +1102,7 @@ mod tests {
     /// query; the trial measures the k-th distances and grows the cell: far fewer cell look-ups,
     /// the same lists. On a surface (20 000 points) the extrapolation holds and the cell stays.
     #[test]
+    #[cfg_attr(debug_assertions, ignore = "release only: heavy in the debug build")]
     fn issue16_the_first_cell_grows_to_the_measured_k_distance_in_a_volume() {
         let mut r = Rng(17);
         let cube: Vec<DVec3> = (0..100_000)
@@ -1125,6 +1131,7 @@ mod tests {
     /// A stack of many coincident points costs one block scan, not one per copy; each copy's
     /// list is the k copies of lowest index.
     #[test]
+    #[cfg_attr(debug_assertions, ignore = "release only: heavy in the debug build")]
     fn duplicate_stacks_are_answered_once() {
         let mut pts = surface(2000, 9);
         pts.extend(std::iter::repeat_n(DVec3::new(5.0, 5.0, 0.5), 20_000));

@@ -1085,6 +1085,7 @@ mod tests {
     /// moves more than [`guarded::REACH`] times its own 16-NN radius in the input (brute force),
     /// and the cap is what holds the largest moves.
     #[test]
+    #[cfg_attr(debug_assertions, ignore = "release only: heavy in the debug build")]
     fn issue9_no_point_moves_past_a_quarter_of_its_own_r16() {
         use rand::{RngExt, SeedableRng};
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(9);
