@@ -33,7 +33,7 @@ pub enum Command {
     /// The real-scan protocol: displacement over each point's 16-NN radius (do no harm), or with
     /// --clean the noise removed, per class.
     Harm(HarmArgs),
-    /// Compare a denoised file with the clean one (EVALUATION.md metrics).
+    /// Compare a denoised file with the clean one (the metrics of docs/EVALUATION.md).
     Eval(EvalArgs),
     /// Run the paper's Table I protocol (20/40/80 % iso noise) on a clean mesh.
     Table(TableArgs),
@@ -218,9 +218,9 @@ pub struct ServeArgs {
 /// Flags of `qemd denoise`.
 #[derive(Debug, Args)]
 pub struct DenoiseArgs {
-    /// Input file (.ply, .obj, .off, .las, .laz, .pcd, .xyz, .txt, .pts, .bin), or - for
-    /// standard input (spooled to --temp-dir; the format is told from the content unless
-    /// --input-format is given).
+    /// Input file (.ply, .obj, .off, .las, .laz, .copc.laz, .e57, .pcd, .xyz, .txt, .pts, .bin,
+    /// .pcd.bin), or - for standard input (spooled to --temp-dir; the format is told from the
+    /// content unless --input-format is given).
     pub input: PathBuf,
     /// Output file, or - for standard output; its extension picks the format unless --format is
     /// given (standard output and other streams default to the input's format). Regular files

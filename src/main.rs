@@ -154,9 +154,9 @@ fn plan(a: PlanArgs) -> Result<()> {
             eprintln!("qemd: {work} already holds this job; nothing changed");
         }
         println!(
-            "{} points, {} tiles in {work}",
-            planned.job.plan.points,
-            planned.job.plan.tiles.len()
+            "{}, {} in {work}",
+            count(planned.job.plan.points, ["point", "points"]),
+            count(planned.job.plan.tiles.len() as u64, ["tile", "tiles"])
         );
         for (p, n) in Phase::ALL.iter().zip(tasks) {
             println!("{:<10} {n} tasks", p.name());
@@ -213,13 +213,13 @@ fn finish(a: FinishArgs) -> Result<()> {
     let f = f?;
     if !a.quiet {
         eprintln!(
-            "qemd: {work} → {} ({}): {} points in, {} out, {} outliers, {} tiles",
+            "qemd: {work} → {} ({}): {} in, {} out, {} outliers, {}",
             f.output.display(),
             f.delivered,
-            f.points_in,
+            count(f.points_in, ["point", "points"]),
             f.written,
             f.found,
-            f.tiles
+            count(f.tiles, ["tile", "tiles"])
         );
         if f.normals == pipeline::NormalsAction::Cleared {
             eprintln!(
@@ -280,7 +280,12 @@ fn status(a: StatusArgs) -> Result<()> {
         println!("{}", serde_json::to_string_pretty(&s)?);
         return Ok(());
     }
-    println!("{}: {} points, {} tiles", s.work, s.points, s.tiles);
+    println!(
+        "{}: {}, {}",
+        s.work,
+        count(s.points, ["point", "points"]),
+        count(s.tiles, ["tile", "tiles"])
+    );
     for p in &s.phases {
         let state = if p.units == 0 {
             "not needed".to_string()
@@ -386,6 +391,30 @@ fn slurm_settings(config: &Config) -> Option<qem_denoise::jobs::slurm::SlurmSett
     })
 }
 
+/// `n` and the noun `[one, many]` its number takes (`1 tile`, `3 tiles`).
+fn count(n: u64, [one, many]: [&str; 2]) -> String {
+    format!("{n} {}", if n == 1 { one } else { many })
+}
+
+/// What a run's points are: a mesh's vertices or a cloud's points.
+fn unit(report: &pipeline::Report) -> [&'static str; 2] {
+    if report.mode == "mesh" {
+        ["vertex", "vertices"]
+    } else {
+        ["point", "points"]
+    }
+}
+
+/// How a run went, for its summary: `mesh, 1200 faces`, `point cloud in memory`, `point cloud
+/// in 3 tiles`.
+fn run_kind(report: &pipeline::Report) -> String {
+    match report.mode.as_str() {
+        "mesh" => format!("mesh, {}", count(report.faces, ["face", "faces"])),
+        "tiled" => format!("point cloud in {}", count(report.tiles, ["tile", "tiles"])),
+        _ => "point cloud in memory".to_string(),
+    }
+}
+
 fn init_threads(threads: Option<usize>) -> Result<()> {
     if let Some(n) = threads {
         anyhow::ensure!(n >= 1, "--threads must be at least 1");
@@ -441,18 +470,17 @@ fn denoise(a: DenoiseArgs) -> Result<()> {
     if !a.quiet {
         let s = &report.stats;
         eprintln!(
-            "qemd: {} → {}: {} {} points in, {} out ({} moved, {} stayed singular, {} degenerate, {} duplicates, {} outliers), {} tiles, {:.3} s wall / {:.3} s CPU, peak RSS {:.1} MiB",
+            "qemd: {} → {}: {}, {} in, {} out ({} moved, {} stayed singular, {} degenerate, {} duplicates, {} outliers), {:.3} s wall / {:.3} s CPU, peak RSS {:.1} MiB",
             report.input.display(),
             report.output.display(),
-            report.mode,
-            report.points_in,
+            run_kind(&report),
+            count(report.points_in, unit(&report)),
             report.points_out,
             s.moved,
             s.singular,
             s.degenerate_neighbourhoods,
             s.duplicates,
             report.outliers_found,
-            report.tiles,
             report.wall_s,
             report.cpu_s,
             report.peak_rss_bytes as f64 / (1024.0 * 1024.0),

@@ -4,7 +4,7 @@
 //! # Brief overview
 //!
 //! * **Normals first.** The paper's operator lands at about half the noise because the tangent
-//!   planes it sums are as noisy as the points (EVALUATION.md). Face normals are therefore
+//!   planes it sums are as noisy as the points (../shared/EVALUATION.md). Face normals are therefore
 //!   smoothed by a bilateral filter over the faces sharing a vertex (Zheng et al. 2011): spatial
 //!   width σs = the input's mean edge, range width σr = the median normal difference between such
 //!   faces (at least `sigma_r`), recomputed every iteration, so the filter adapts to the noise it

@@ -72,7 +72,7 @@ pub fn mesh_step(
             |(scratch, ring), v| {
                 adjacency.ring(v, params.rings, scratch, ring);
                 let q = summed_quadric(pos, normals, pos[v], ring);
-                // Mesh vertices are not bounded: EVALUATION.md's robust operator lets a few
+                // Mesh vertices are not bounded: ../shared/EVALUATION.md's robust operator lets a few
                 // vertices step beyond their ring (the golden outputs have them), and a mesh has
                 // no isolated points.
                 apply(pos[v], &q, params, f64::INFINITY)

@@ -1,4 +1,4 @@
-//! Quality metrics of a denoised mesh or cloud against its clean original (`EVALUATION.md`).
+//! Quality metrics of a denoised mesh or cloud against its clean original (`docs/EVALUATION.md`).
 //!
 //! # Brief overview
 //!

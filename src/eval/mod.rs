@@ -1,4 +1,4 @@
-//! Evaluation: synthetic shapes, noise, the quality metrics of `EVALUATION.md`, the paper's Table I
+//! Evaluation: synthetic shapes, noise, the quality metrics of `docs/EVALUATION.md`, the paper's Table I
 //! protocol and a software renderer.
 //!
 //! # Brief overview
@@ -253,7 +253,7 @@ pub fn signed_volume(pos: &[DVec3], faces: &Faces) -> f64 {
     sum / 6.0
 }
 
-/// The scale length L of `EVALUATION.md`: the mean length of the unique undirected edges of the
+/// The scale length L of `docs/EVALUATION.md`: the mean length of the unique undirected edges of the
 /// faces, or for a cloud without faces the mean distance from each point to its nearest other
 /// point.
 ///

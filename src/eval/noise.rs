@@ -1,4 +1,4 @@
-//! Synthetic noise with the models of `EVALUATION.md`.
+//! Synthetic noise with the models of `docs/EVALUATION.md`.
 //!
 //! σ = level · L, where L is the scale length of the *clean* input ([`super::scale_length`]: the
 //! mean unique-edge length of a mesh, or the mean nearest-neighbour distance of a cloud).

@@ -87,8 +87,8 @@ impl Shape {
         }
     }
 
-    /// A sensible resolution: level 6 for the sphere (the 40,962-vertex icosphere of
-    /// `EVALUATION.md`), tens of thousands of vertices for the others.
+    /// A sensible resolution: level 6 for the sphere (the 40,962-vertex icosphere of the Table I
+    /// runs, docs/quality/meshes.md), tens of thousands of vertices for the others.
     pub fn default_resolution(self) -> u32 {
         match self {
             Shape::Sphere => 6,
@@ -714,7 +714,7 @@ mod tests {
 
     #[test]
     fn icosphere_level_6_has_40962_vertices() {
-        // Counting only: 40,962 is the icosphere of EVALUATION.md.
+        // Counting only: 40,962 is the icosphere of the Table I runs (docs/quality/meshes.md).
         let m = Shape::Sphere.mesh(6).unwrap();
         assert_eq!(m.positions.len(), 40_962);
         assert_eq!(m.faces.len(), 81_920);

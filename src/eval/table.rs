@@ -451,7 +451,7 @@ mod tests {
         assert_eq!(back.to_markdown(), md);
     }
 
-    /// The icosphere row of EVALUATION.md (40,962 vertices, iso noise, seed 0): QEM
+    /// The icosphere row of ../shared/EVALUATION.md (40,962 vertices, iso noise, seed 0): QEM
     /// 10.1 / 20.4 / 41.8 and bilateral 4.9 / 10.4 / 35.7 % of L. Seconds in release, minutes in
     /// debug, hence ignored; CI runs it with `cargo test --release -- --include-ignored`.
     #[test]

@@ -15,7 +15,10 @@ pub struct Report {
     pub output: PathBuf,
     /// `mesh`, `points` (in memory) or `tiled`.
     pub mode: String,
-    /// The parameters used.
+    /// The parameters in force: every default the run resolved is filled in (`knn` 16 on
+    /// clouds, the mode's `filter`, `updates`, `sigma_r` and cycles), so the report says what ran;
+    /// `knn` stays `null` in mesh mode (k-rings), and `iterations` 0 on meshes means the cycles
+    /// were chosen from the data.
     pub params: Params,
     /// Outlier handling.
     pub outliers: OutlierMode,
@@ -84,6 +87,19 @@ impl Report {
     }
 }
 
+/// `params` with the defaults a run in mesh mode (`mesh`) or point mode resolves filled in.
+fn in_force(params: &Params, mesh: bool) -> Params {
+    let s = params.schedule(mesh);
+    Params {
+        knn: (!mesh || params.knn.is_some()).then(|| params.k()),
+        filter: Some(s.filter),
+        updates: Some(s.updates),
+        iterations: s.cycles,
+        sigma_r: Some(params.sigma_r_floor(mesh)),
+        ..params.clone()
+    }
+}
+
 /// Peak resident set size of this process (VmHWM), in bytes; 0 where unavailable.
 pub fn peak_rss_bytes() -> u64 {
     std::fs::read_to_string("/proc/self/status")
@@ -105,7 +121,7 @@ impl Report {
             input: job.input.clone(),
             output: job.output.clone(),
             mode: mode.into(),
-            params: job.spec.params.clone(),
+            params: in_force(&job.spec.params, mode == "mesh"),
             outliers: job.spec.outliers,
             points_in: 0,
             points_out: 0,

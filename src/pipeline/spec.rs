@@ -187,7 +187,13 @@ pub struct SpecOverlay {
     /// clears it).
     #[cfg_attr(
         feature = "cli",
-        arg(long = "no-volume", num_args = 0, default_missing_value = "false")
+        arg(
+            long = "no-volume",
+            num_args = 0,
+            default_missing_value = "false",
+            help = "Meshes: do not restore the enclosed volume (by default a closed mesh gets \
+                    its input volume back by a final offset along the normals)"
+        )
     )]
     #[serde(skip_serializing_if = "Option::is_none")]
     pub volume: Option<bool>,
@@ -196,7 +202,14 @@ pub struct SpecOverlay {
     /// true; the CLI's --no-guard clears it and moves every point; --paper implies that).
     #[cfg_attr(
         feature = "cli",
-        arg(long = "no-guard", num_args = 0, default_missing_value = "false")
+        arg(
+            long = "no-guard",
+            num_args = 0,
+            default_missing_value = "false",
+            help = "Clouds: turn the guard off and move every point (by default each \
+                    neighbourhood is classified and only surfaces and lines move, every step \
+                    bounded by the local noise; --paper turns it off too)"
+        )
     )]
     #[serde(skip_serializing_if = "Option::is_none")]
     pub guard: Option<bool>,

@@ -15,19 +15,23 @@ const problemText = (e) => (e instanceof ApiProblem ? `${e.status}: ${e.message}
 
 // ---- session ------------------------------------------------------------------------------
 
-async function signIn(t) {
+// `quiet`: the page's first try without a token, which a server with tokens refuses: the form
+// then asks for one, without an error.
+async function signIn(t, { quiet = false } = {}) {
   setToken(t);
   try {
     await api('/v1/jobs?limit=1');
   } catch (e) {
-    setToken('');
+    if (token() === t) setToken('');
+    if (quiet && e instanceof ApiProblem && e.status === 401) { $('token').focus(); return false; }
     show($('signin-error'), e instanceof ApiProblem && e.status === 401 ? 'Sign-in refused: the server does not know this token.' : `Sign-in failed: ${problemText(e)}`);
     return false;
   }
   show($('signin-error'), '');
   $('signin').hidden = true;
   $('session').hidden = false;
-  $('whoami').textContent = t ? 'Signed in (token kept for this tab only)' : 'Signed in (server without tokens)';
+  $('whoami').textContent = t ? 'Signed in (token kept for this tab only)' : 'Open server: no token needed';
+  $('signout').hidden = !t;
   $('main').hidden = false;
   $('intro').hidden = true;
   if (!form) await setUpForm();
@@ -312,8 +316,10 @@ function wire() {
   drop.addEventListener('dragleave', () => drop.classList.remove('over'));
   drop.addEventListener('drop', (e) => { e.preventDefault(); drop.classList.remove('over'); for (const f of e.dataTransfer.files) uploadFile(f); });
   document.body.dataset.app = 'ready';
+  // A stored token signs in again; without one the page tries the server as it is, so a server
+  // without tokens (as `qemd serve` starts by default) opens without asking for one.
   if (sessionStorage.getItem('qemd.token') !== null) signIn(token());
-  else $('token').focus();
+  else signIn('', { quiet: true });
 }
 
 wire();

@@ -30,7 +30,7 @@ pub(super) fn document(clean: &Mesh, spec: &ReportSpec, r: &Report) -> Doc {
     }
     d.p(&format!(
         "qemd {}. Clean mesh `{}`: {} vertices, {} faces, L (mean edge length) = {:.6e}. \
-         Errors are in % of L, angles in degrees; protocol and metrics as in `EVALUATION.md`.",
+         Errors are in % of L, angles in degrees; protocol and metrics as in `docs/EVALUATION.md`.",
         env!("CARGO_PKG_VERSION"),
         spec.title,
         clean.positions.len(),
