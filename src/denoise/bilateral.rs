@@ -130,18 +130,31 @@ pub fn points_step(
         .into_par_iter()
         .with_min_len(1024)
         .map_init(Vec::new, |buf, i| {
-            let v = cur[i];
-            if !v.is_finite() {
-                return (v, 0);
-            }
-            let nbrs = lists
-                .get(i)
-                .iter()
-                .filter(|&&u| u as usize != i)
-                .map(|&u| cur[u as usize])
-                .filter(|q| (*q - v).length_squared() <= r2);
-            let h = offset(v, normals[i], nbrs, sigma_c, buf);
-            finish(v, normals[i], h)
+            point_step(cur, lists.get(i), normals, sigma_c, r2, i, buf)
         })
         .collect()
+}
+
+/// [`points_step`] at point `i` (list `list`), with `r2 = 4σc²`; `buf` is scratch.
+#[inline]
+pub fn point_step(
+    cur: &[DVec3],
+    list: &[u32],
+    normals: &[DVec3],
+    sigma_c: f64,
+    r2: f64,
+    i: usize,
+    buf: &mut Vec<(f64, f64)>,
+) -> (DVec3, u8) {
+    let v = cur[i];
+    if !v.is_finite() {
+        return (v, 0);
+    }
+    let nbrs = list
+        .iter()
+        .filter(|&&u| u as usize != i)
+        .map(|&u| cur[u as usize])
+        .filter(|q| (*q - v).length_squared() <= r2);
+    let h = offset(v, normals[i], nbrs, sigma_c, buf);
+    finish(v, normals[i], h)
 }

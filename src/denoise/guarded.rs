@@ -122,12 +122,12 @@ fn agree(r: f64, s: f64) -> f64 {
 }
 
 /// The robust quadric of point `i` (relative to its position).
-fn quadric(pos: &[DVec3], g: &Guard, lists: &Neighbourhoods, i: usize) -> Quadric {
+fn quadric(pos: &[DVec3], g: &Guard, list: &[u32], i: usize) -> Quadric {
     let v = pos[i];
     let mut q = Quadric::ZERO;
     match g.classes[i] {
         Structure::Line => {
-            for &u in lists.get(i) {
+            for &u in list {
                 let u = u as usize;
                 if g.classes[u] != Structure::Line {
                     continue;
@@ -143,7 +143,7 @@ fn quadric(pos: &[DVec3], g: &Guard, lists: &Neighbourhoods, i: usize) -> Quadri
         }
         _ => {
             let ni = g.normals[i];
-            for &u in lists.get(i) {
+            for &u in list {
                 let u = u as usize;
                 let nu = g.normals[u];
                 if nu == DVec3::ZERO || !g.classes[u].takes_planes() {
@@ -174,23 +174,36 @@ fn offsets(
         .into_par_iter()
         .with_min_len(1024)
         .map(|i| {
-            let v = pos[i];
             if active.is_some_and(|a| !a[i]) {
                 return (None, 0);
             }
-            if !v.is_finite() || !g.classes[i].moves() || g.bound[i] <= 0.0 {
-                return (None, 0);
-            }
-            if g.max_move.is_some_and(|m| m <= 0.0) {
-                return (None, 0);
-            }
-            let q = quadric(pos, g, lists, i);
-            match params.solver_for(q.a.trace()).offset(&q) {
-                Some(w) => (Some(w), 0),
-                None => (None, stay::SINGULAR),
-            }
+            offset_of(pos, lists.get(i), g, params, i)
         })
         .collect()
+}
+
+/// The quadric offset of point `i` (list `list`), `None` when it stays, with its [`stay`]
+/// flag (see [`step`]).
+#[inline]
+pub fn offset_of(
+    pos: &[DVec3],
+    list: &[u32],
+    g: &Guard,
+    params: &Params,
+    i: usize,
+) -> (Option<DVec3>, u8) {
+    let v = pos[i];
+    if !v.is_finite() || !g.classes[i].moves() || g.bound[i] <= 0.0 {
+        return (None, 0);
+    }
+    if g.max_move.is_some_and(|m| m <= 0.0) {
+        return (None, 0);
+    }
+    let q = quadric(pos, g, list, i);
+    match params.solver_for(q.a.trace()).offset(&q) {
+        Some(w) => (Some(w), 0),
+        None => (None, stay::SINGULAR),
+    }
 }
 
 /// Directions a point's offset spans: one (along a plane normal) for surfaces and edges, two
@@ -215,30 +228,35 @@ pub fn gains(lists: &Neighbourhoods, g: &Guard, offs: &[(Option<DVec3>, u8)]) ->
     (0..offs.len())
         .into_par_iter()
         .with_min_len(1024)
-        .map(|i| {
-            if offs[i].0.is_none() {
-                return 0.0;
-            }
-            let explained = WIENER * g.bound[i];
-            let wiener = if g.noise[i] > explained {
-                (explained / g.noise[i]).powi(2)
-            } else {
-                1.0
-            };
-            let (mut sum, mut n) = (0.0, 0usize);
-            for &u in lists.get(i) {
-                if let Some(w) = offs[u as usize].0 {
-                    sum += w.length_squared() / dims(g.classes[u as usize]);
-                    n += 1;
-                }
-            }
-            // n ≥ 1: the list holds the point itself, which has an offset.
-            let sigma2 = g.bound[i] * g.bound[i];
-            let mean = sum / n as f64;
-            let shrink = if mean > sigma2 { sigma2 / mean } else { 1.0 };
-            shrink * wiener
-        })
+        .map(|i| gain_of(lists.get(i), g, offs, i))
         .collect()
+}
+
+/// The gain of point `i` (list `list`) from the offsets `offs` of the first update (see
+/// [`gains`]); 0 for a point without an offset.
+#[inline]
+pub fn gain_of(list: &[u32], g: &Guard, offs: &[(Option<DVec3>, u8)], i: usize) -> f64 {
+    if offs[i].0.is_none() {
+        return 0.0;
+    }
+    let explained = WIENER * g.bound[i];
+    let wiener = if g.noise[i] > explained {
+        (explained / g.noise[i]).powi(2)
+    } else {
+        1.0
+    };
+    let (mut sum, mut n) = (0.0, 0usize);
+    for &u in list {
+        if let Some(w) = offs[u as usize].0 {
+            sum += w.length_squared() / dims(g.classes[u as usize]);
+            n += 1;
+        }
+    }
+    // n ≥ 1: the list holds the point itself, which has an offset.
+    let sigma2 = g.bound[i] * g.bound[i];
+    let mean = sum / n as f64;
+    let shrink = if mean > sigma2 { sigma2 / mean } else { 1.0 };
+    shrink * wiener
 }
 
 /// One guarded update of every point (of the `active` ones; the others stay where they are):
@@ -258,23 +276,27 @@ pub fn step(
     (0..pos.len())
         .into_par_iter()
         .with_min_len(1024)
-        .map(|i| {
-            let v = pos[i];
-            let (Some(w), _) = offs[i] else {
-                return (v, offs[i].1);
-            };
-            let step = if g.classes[i] == Structure::Surface {
-                STEP
-            } else {
-                STEP_FEATURE
-            };
-            let mut bound = (step * g.bound[i]).min(REACH * g.radii[i].sqrt());
-            if let Some(m) = g.max_move {
-                bound = bound.min(m);
-            }
-            clamp(g.start[i], v + w * gs[i], bound)
-        })
+        .map(|i| moved(pos[i], offs[i], gs[i], g, i))
         .collect()
+}
+
+/// Where point `i` (now at `v`) goes with its offset `off` scaled by its gain `gain`, clamped
+/// to its bound around where the run started, with its [`stay`] flag (see [`step`]).
+#[inline]
+pub fn moved(v: DVec3, off: (Option<DVec3>, u8), gain: f64, g: &Guard, i: usize) -> (DVec3, u8) {
+    let (Some(w), _) = off else {
+        return (v, off.1);
+    };
+    let step = if g.classes[i] == Structure::Surface {
+        STEP
+    } else {
+        STEP_FEATURE
+    };
+    let mut bound = (step * g.bound[i]).min(REACH * g.radii[i].sqrt());
+    if let Some(m) = g.max_move {
+        bound = bound.min(m);
+    }
+    clamp(g.start[i], v + w * gain, bound)
 }
 
 /// `p` pulled back into the ball of radius `bound` around `centre`, with [`stay::BOUNDED`] when

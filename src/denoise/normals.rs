@@ -151,21 +151,11 @@ pub fn filter_point_normals_within(
                 let list = lists.get(i);
                 let w = &mut ws[at..at + list.len()];
                 at += list.len();
-                let ni = normals[i];
-                if ni == DVec3::ZERO || !widest.has(i) {
+                if normals[i] == DVec3::ZERO || !widest.has(i) {
                     continue;
                 }
-                let ss2 = 2.0 * radii[i].max(f64::MIN_POSITIVE);
-                for (w, &u) in w.iter_mut().zip(list) {
-                    *w = gauss(-(pos[i] - pos[u as usize]).length_squared() / ss2);
-                }
-                diffs.clear();
-                diffs.extend(list.iter().map(|&u| {
-                    let nu = normals[u as usize];
-                    let nu = if nu.dot(ni) < 0.0 { -nu } else { nu };
-                    (ni - nu).length_squared()
-                }));
-                *r = 2.0 * median(diffs).max(floor2);
+                filter_weights(pos, list, i, radii[i], w);
+                *r = filter_range(normals, list, i, floor2, diffs);
             }
         });
     // Two buffers, swapped between iterations (each reads the previous one only).
@@ -177,28 +167,72 @@ pub fn filter_point_normals_within(
             .enumerate()
             .with_min_len(1024)
             .for_each(|(i, out)| {
-                let ni = n[i];
-                if ni == DVec3::ZERO || !here.has(i) {
-                    *out = ni;
+                if !here.has(i) {
+                    *out = n[i];
                     return;
                 }
                 let (a, b) = (lists.offsets[i] as usize, lists.offsets[i + 1] as usize);
-                let mut s = DVec3::ZERO;
-                for (&u, &w) in lists.indices[a..b].iter().zip(&spatial[a..b]) {
-                    let nu = n[u as usize];
-                    let nu = if nu.dot(ni) < 0.0 { -nu } else { nu };
-                    if nu == DVec3::ZERO {
-                        continue;
-                    }
-                    let wr = gauss(-(ni - nu).length_squared() / range[i]);
-                    s += nu * (w * wr);
-                }
-                let s = s.normalize_or_zero();
-                *out = if s == DVec3::ZERO { ni } else { s };
+                *out = filter_step(&n, &lists.indices[a..b], &spatial[a..b], range[i], i);
             });
         std::mem::swap(&mut n, &mut next);
     }
     n
+}
+
+/// The spatial weights of point `i`'s list entries for the normal filter
+/// ([`filter_point_normals`]), written to `out` (one per member): a Gaussian of the distance,
+/// σs² = half the list's squared radius `radius2`.
+#[inline]
+pub fn filter_weights(pos: &[DVec3], list: &[u32], i: usize, radius2: f64, out: &mut [f64]) {
+    let ss2 = 2.0 * radius2.max(f64::MIN_POSITIVE);
+    for (w, &u) in out.iter_mut().zip(list) {
+        *w = gauss(-(pos[i] - pos[u as usize]).length_squared() / ss2);
+    }
+}
+
+/// The range width of point `i` for the normal filter: twice the median squared difference
+/// between its normal and its members' (turned to agree with it), at least `floor2` (the
+/// squared `sigma_r_floor`); `diffs` is scratch.
+#[inline]
+pub fn filter_range(
+    normals: &[DVec3],
+    list: &[u32],
+    i: usize,
+    floor2: f64,
+    diffs: &mut Vec<f64>,
+) -> f64 {
+    let ni = normals[i];
+    diffs.clear();
+    diffs.extend(list.iter().map(|&u| {
+        let nu = normals[u as usize];
+        let nu = if nu.dot(ni) < 0.0 { -nu } else { nu };
+        (ni - nu).length_squared()
+    }));
+    2.0 * median(diffs).max(floor2)
+}
+
+/// One filter iteration at point `i`: the normalised sum of its members' normals in `n` (the
+/// iteration before), weighted by `weights` ([`filter_weights`]) and by their difference to its
+/// own over `range` ([`filter_range`]). A point without a normal keeps none; one whose sum
+/// vanishes keeps its own.
+#[inline]
+pub fn filter_step(n: &[DVec3], list: &[u32], weights: &[f64], range: f64, i: usize) -> DVec3 {
+    let ni = n[i];
+    if ni == DVec3::ZERO {
+        return ni;
+    }
+    let mut s = DVec3::ZERO;
+    for (&u, &w) in list.iter().zip(weights) {
+        let nu = n[u as usize];
+        let nu = if nu.dot(ni) < 0.0 { -nu } else { nu };
+        if nu == DVec3::ZERO {
+            continue;
+        }
+        let wr = gauss(-(ni - nu).length_squared() / range);
+        s += nu * (w * wr);
+    }
+    let s = s.normalize_or_zero();
+    if s == DVec3::ZERO { ni } else { s }
 }
 
 /// [`exp`]`(x)`, with `x = ±0` (a point against itself, equal normals) answered without the call:

@@ -172,18 +172,29 @@ pub fn points_step(
     (0..pos.len())
         .into_par_iter()
         .with_min_len(1024)
-        .map(|i| {
-            let v = pos[i];
-            if !v.is_finite() {
-                return (v, 0);
-            }
-            let q = match params.planes {
-                Planes::Tangent => summed_quadric(pos, normals, v, lists.get(i)),
-                Planes::Face => bent_quadric(pos, normals, i, lists.get(i)),
-            };
-            apply(v, &q, params, step_limit(params, reach2[i]))
-        })
+        .map(|i| point_step(pos, lists.get(i), reach2[i], normals, params, i))
         .collect()
+}
+
+/// [`points_step`] at point `i` (list `list`, squared neighbourhood scale `reach2`).
+#[inline]
+pub fn point_step(
+    pos: &[DVec3],
+    list: &[u32],
+    reach2: f64,
+    normals: &[DVec3],
+    params: &Params,
+    i: usize,
+) -> (DVec3, u8) {
+    let v = pos[i];
+    if !v.is_finite() {
+        return (v, 0);
+    }
+    let q = match params.planes {
+        Planes::Tangent => summed_quadric(pos, normals, v, list),
+        Planes::Face => bent_quadric(pos, normals, i, list),
+    };
+    apply(v, &q, params, step_limit(params, reach2))
 }
 
 /// Cosine of the largest angle between a point's normal and a neighbour's for which the
@@ -226,7 +237,13 @@ pub fn bent_quadric(pos: &[DVec3], normals: &[DVec3], i: usize, neighbourhood: &
 /// True when point `i`'s k-NN list starts with another point at distance zero with a lower tie
 /// key, i.e. it duplicates an earlier point (lists are sorted by (distance, tie key)).
 pub fn is_duplicate(pos: &[DVec3], lists: &Neighbourhoods, ties: &[u64], i: usize) -> bool {
-    lists.get(i).first().is_some_and(|&j| {
+    duplicates(pos, lists.get(i), ties, i)
+}
+
+/// [`is_duplicate`] of point `i` with list `list`.
+#[inline]
+pub fn duplicates(pos: &[DVec3], list: &[u32], ties: &[u64], i: usize) -> bool {
+    list.first().is_some_and(|&j| {
         let j = j as usize;
         ties[j] < ties[i] && pos[j] == pos[i]
     })

@@ -242,13 +242,25 @@ pub fn classify_within(
             if !within.has(i) {
                 return Structure::Degenerate;
             }
-            let members = lists
-                .get(i)
-                .iter()
-                .map(|&u| (u, fits[u as usize].own, radii[u as usize]));
-            class_of(i, (fits[i].own, radii[i]), members, buf)
+            class_in(fits, radii, lists.get(i), i, buf)
         })
         .collect()
+}
+
+/// [`class_of`] point `i` with list `list`, from the fits and squared radii of every point;
+/// `buf` is scratch.
+#[inline]
+pub fn class_in(
+    fits: &[LocalFit],
+    radii: &[f64],
+    list: &[u32],
+    i: usize,
+    buf: &mut Vec<f64>,
+) -> Structure {
+    let members = list
+        .iter()
+        .map(|&u| (u, fits[u as usize].own, radii[u as usize]));
+    class_of(i, (fits[i].own, radii[i]), members, buf)
 }
 
 /// The final class of point `i` (see [`classify`]) from its own class and squared radius, and
@@ -300,18 +312,23 @@ pub fn noise_scale_within(fits: &[LocalFit], lists: &Neighbourhoods, within: Wit
             if !within.has(i) {
                 return 0.0;
             }
-            buf.clear();
-            buf.extend(
-                lists
-                    .get(i)
-                    .iter()
-                    .map(|&u| &fits[u as usize])
-                    .filter(|f| matches!(f.own, Structure::Surface | Structure::Line))
-                    .map(|f| f.residual),
-            );
-            median(buf)
+            noise_of(fits, lists.get(i), buf)
         })
         .collect()
+}
+
+/// The noise scale of one point (see [`noise_scale`]) from its list `list` and the fits of its
+/// members; `buf` is scratch.
+#[inline]
+pub fn noise_of(fits: &[LocalFit], list: &[u32], buf: &mut Vec<f64>) -> f64 {
+    buf.clear();
+    buf.extend(
+        list.iter()
+            .map(|&u| &fits[u as usize])
+            .filter(|f| matches!(f.own, Structure::Surface | Structure::Line))
+            .map(|f| f.residual),
+    );
+    median(buf)
 }
 
 /// The small-scale residual of point `i`: the RMS distance of its nearest [`NEAR`] points (the

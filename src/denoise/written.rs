@@ -58,17 +58,28 @@ pub fn curvatures(pos: &[DVec3], lists: &Neighbourhoods, isolated: &[bool]) -> V
         .into_par_iter()
         .with_min_len(1024)
         .map(|i| {
-            let v = pos[i];
-            if isolated.get(i).copied().unwrap_or(false) || !v.is_finite() {
-                return 0.0;
-            }
-            pca_fit(lists.get(i).iter().map(|&u| pos[u as usize] - v)).map_or(0.0, |f| {
-                let [l0, l1, l2] = f.values.map(|x| x.max(0.0));
-                let sum = l0 + l1 + l2;
-                if sum > 0.0 { l0 / sum } else { 0.0 }
-            })
+            curvature_of(
+                pos,
+                lists.get(i),
+                i,
+                isolated.get(i).copied().unwrap_or(false),
+            )
         })
         .collect()
+}
+
+/// [`curvatures`] of point `i` (list `list`; `isolated`: its list was capped short).
+#[inline]
+pub fn curvature_of(pos: &[DVec3], list: &[u32], i: usize, isolated: bool) -> f64 {
+    let v = pos[i];
+    if isolated || !v.is_finite() {
+        return 0.0;
+    }
+    pca_fit(list.iter().map(|&u| pos[u as usize] - v)).map_or(0.0, |f| {
+        let [l0, l1, l2] = f.values.map(|x| x.max(0.0));
+        let sum = l0 + l1 + l2;
+        if sum > 0.0 { l0 / sum } else { 0.0 }
+    })
 }
 
 /// The written values of one cycle: `normals` is the operator's normal of each point (zero where
@@ -100,19 +111,24 @@ pub fn of_cycle(
     (0..pos.len())
         .into_par_iter()
         .with_min_len(1024)
-        .map(|i| {
-            let n = match normals[i].normalize_or_zero() {
-                DVec3::ZERO => fits[i].normal.normalize_or_zero(),
-                n => n,
-            };
-            let n = orient(n);
-            PointNormal {
-                normal: [n.x as f32, n.y as f32, n.z as f32],
-                curvature: curvature[i] as f32,
-                structure: classes[i] as u8,
-            }
-        })
+        .map(|i| written_of(normals[i], &fits[i], classes[i], curvature[i]))
         .collect()
+}
+
+/// What the output writes for one point: its operator `normal` (its fit's where that is zero),
+/// oriented ([`orient`]), its `curvature` and its class.
+#[inline]
+pub fn written_of(normal: DVec3, fit: &LocalFit, class: Structure, curvature: f64) -> PointNormal {
+    let n = match normal.normalize_or_zero() {
+        DVec3::ZERO => fit.normal.normalize_or_zero(),
+        n => n,
+    };
+    let n = orient(n);
+    PointNormal {
+        normal: [n.x as f32, n.y as f32, n.z as f32],
+        curvature: curvature as f32,
+        structure: class as u8,
+    }
 }
 
 #[cfg(test)]
