@@ -26,6 +26,9 @@ pub struct Cli {
 pub enum Command {
     /// Denoise a mesh or point cloud (format from the extension).
     Denoise(Box<DenoiseArgs>),
+    /// Describe a file: format, point count, schema and extra fields, bounds, CRS, scale and
+    /// offset, point spacing, classes present (as `pdal info` and `lasinfo`).
+    Info(InfoArgs),
     /// Generate a synthetic shape (mesh, or point samples with --points).
     Synth(SynthArgs),
     /// Add seeded noise to a mesh or point cloud.
@@ -334,6 +337,29 @@ impl RunFlags {
             with_layout(self.input_format, input, self.bin_fields),
             output,
         )
+    }
+}
+
+/// Flags of `qemd info`.
+#[derive(Debug, Args)]
+pub struct InfoArgs {
+    /// The file (any format `qemd denoise` reads), or - for standard input.
+    pub input: PathBuf,
+    /// Input format, overriding the extension and the content.
+    #[arg(long, ignore_case = true, value_parser = format_parser())]
+    pub input_format: Option<Format>,
+    /// Layout of raw little-endian float32 .bin records (as `qemd denoise --bin-fields`).
+    #[arg(long, value_name = "FIELDS|N", value_parser = BinLayout::parse)]
+    pub bin_fields: Option<BinLayout>,
+    /// Print JSON instead of text.
+    #[arg(long)]
+    pub json: bool,
+}
+
+impl InfoArgs {
+    /// The input format these flags select (`None`: from the extension or content).
+    pub fn format(&self) -> Option<Format> {
+        with_layout(self.input_format, &self.input, self.bin_fields)
     }
 }
 

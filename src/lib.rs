@@ -14,6 +14,8 @@
 //! * [`eval`]: synthetic shapes, noise, the quality metrics, Table I, rendering.
 //! * [`tiling`]: the out-of-core path (plan, partition, tiles with halos, stitch).
 //! * [`pipeline`]: source → denoise → sink with progress, cancellation, checkpoints and a report.
+//! * [`info`]: what a file holds (`qemd info`): format, schema, counts, bounds, CRS, spacing,
+//!   classes.
 //! * [`jobs`]: the service's job store (SQLite), uploads, scheduler and the one bridge from the
 //!   async runtime to rayon; nothing before it knows about tokio.
 //! * [`api`]: the HTTP API (axum): routes, uploads, downloads, errors, OpenAPI, server.
@@ -43,6 +45,7 @@ pub mod denoise;
 #[cfg(feature = "eval")]
 pub mod eval;
 pub mod geometry;
+pub mod info;
 pub mod io;
 #[cfg(feature = "service")]
 pub mod jobs;

@@ -13,9 +13,9 @@ use clap::Parser;
 use qem_denoise::api::ApiSettings;
 use qem_denoise::api::server::{ServeOptions, Server, shutdown_signal};
 use qem_denoise::cli::{
-    Cli, Command, DemoArgs, DenoiseArgs, EvalArgs, FinishArgs, HarmArgs, K8sArgs, NoiseArgs,
-    NoiseUnit, PlanArgs, RenderArgs, ReportArgs, ServeArgs, SpectrumArgs, StatusArgs, SynthArgs,
-    TableArgs, WorkerArgs,
+    Cli, Command, DemoArgs, DenoiseArgs, EvalArgs, FinishArgs, HarmArgs, InfoArgs, K8sArgs,
+    NoiseArgs, NoiseUnit, PlanArgs, RenderArgs, ReportArgs, ServeArgs, SpectrumArgs, StatusArgs,
+    SynthArgs, TableArgs, WorkerArgs,
 };
 use qem_denoise::config::{Config, LogFormat};
 use qem_denoise::denoise::{self, Params};
@@ -71,6 +71,7 @@ fn one_malloc_arena() {}
 fn run(cli: Cli) -> Result<()> {
     match cli.command {
         Command::Denoise(a) => denoise(*a),
+        Command::Info(a) => info(&a),
         Command::Synth(a) => synth(a),
         Command::Noise(a) => noise(a),
         Command::Harm(a) => harm(a),
@@ -413,6 +414,17 @@ fn run_kind(report: &pipeline::Report) -> String {
         "tiled" => format!("point cloud in {}", count(report.tiles, ["tile", "tiles"])),
         _ => "point cloud in memory".to_string(),
     }
+}
+
+fn info(a: &InfoArgs) -> Result<()> {
+    let config = Config::load(None)?;
+    let info = qem_denoise::info::inspect(&a.input, a.format(), config.temp_dir().as_deref())?;
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&info)?);
+    } else {
+        print!("{info}");
+    }
+    Ok(())
 }
 
 fn init_threads(threads: Option<usize>) -> Result<()> {

@@ -11,6 +11,7 @@ mod util;
 mod cli;
 mod docker;
 mod golden;
+mod info;
 mod io_bodies;
 mod io_copc;
 mod io_e57;

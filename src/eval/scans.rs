@@ -60,17 +60,9 @@ impl Classes {
             ClassSource::Structure => Structure::ALL
                 .get(code as usize)
                 .map_or("?".to_string(), |s| s.name().to_string()),
-            ClassSource::Las => match code {
-                0 => "0 never classified".into(),
-                1 => "1 unclassified".into(),
-                2 => "2 ground".into(),
-                3 => "3 low vegetation".into(),
-                4 => "4 medium vegetation".into(),
-                5 => "5 high vegetation".into(),
-                6 => "6 building".into(),
-                7 => "7 noise".into(),
-                9 => "9 water".into(),
-                c => format!("{c}"),
+            ClassSource::Las => match crate::io::classes::las_class_name(code) {
+                Some(name) => format!("{code} {name}"),
+                None => format!("{code}"),
             },
             ClassSource::Field => format!("{code}"),
         }
@@ -387,26 +379,10 @@ pub fn median_spacing(positions: &[DVec3]) -> Result<f64, EvalError> {
         });
     }
     let index = KnnIndex::build(&pts, crate::denoise::origin_of(&pts))?;
-    // The nearest point at a non-zero distance among the 8 nearest (duplicates come first).
-    let (lists, _) = index.knn_all(8)?;
-    let mut d: Vec<f64> = (0..pts.len())
-        .filter_map(|i| {
-            lists
-                .get(i)
-                .iter()
-                .map(|&u| index.dist2(i, u as usize))
-                .find(|&x| x > 0.0)
-        })
-        .map(f64::sqrt)
-        .collect();
-    if d.is_empty() {
-        return Err(EvalError::Empty {
-            what: "cloud",
-            detail: "every point duplicates another".into(),
-        });
-    }
-    let m = d.len() / 2;
-    Ok(*d.select_nth_unstable_by(m, f64::total_cmp).1)
+    crate::neighbours::median_spacing(&index)?.ok_or_else(|| EvalError::Empty {
+        what: "cloud",
+        detail: "every point duplicates another".into(),
+    })
 }
 
 #[cfg(test)]

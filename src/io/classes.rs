@@ -75,6 +75,33 @@ impl ClassField {
     }
 }
 
+/// The ASPRS name of LAS classification `code` (LAS 1.4 R15, Table 17), `None` for a code the
+/// specification reserves or leaves to users.
+pub fn las_class_name(code: u32) -> Option<&'static str> {
+    Some(match code {
+        0 => "never classified",
+        1 => "unclassified",
+        2 => "ground",
+        3 => "low vegetation",
+        4 => "medium vegetation",
+        5 => "high vegetation",
+        6 => "building",
+        7 => "noise",
+        8 => "model key-point",
+        9 => "water",
+        10 => "rail",
+        11 => "road surface",
+        12 => "overlap",
+        13 => "wire guard",
+        14 => "wire conductor",
+        15 => "transmission tower",
+        16 => "wire connector",
+        17 => "bridge deck",
+        18 => "high noise",
+        _ => return None,
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

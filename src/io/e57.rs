@@ -119,6 +119,12 @@ impl E57Meta {
     pub fn scans(&self) -> &[PointCloud] {
         &self.scans
     }
+
+    /// The file's coordinate metadata (the E57 root's `coordinateMetadata`: WKT or another
+    /// description of the CRS), when it has one.
+    pub fn coordinate_metadata(&self) -> Option<&str> {
+        self.coordinate_metadata.as_deref()
+    }
 }
 
 /// The field name of an E57 attribute.

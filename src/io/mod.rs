@@ -84,6 +84,7 @@
 //! One backend per format lives in its own module; this module only dispatches.
 
 pub mod classes;
+pub mod crs;
 pub mod e57;
 pub mod input;
 pub mod las;

@@ -20,6 +20,7 @@
 //! * [`Neighbourhoods`] stores the lists in CSR form; k-NN lists are the special case of equal
 //!   lengths.
 //! * [`MeshAdjacency`] holds the vertex–vertex edges of a polygon mesh and walks k-rings.
+//! * [`median_spacing`] is a cloud's median nearest-neighbour distance, duplicates skipped.
 //! * [`brute`] holds the linear-scan oracles the tests compare against.
 //!
 //! ```text
@@ -34,10 +35,12 @@ mod closure;
 pub use closure::{Listed, Prune, Seen, keep_near};
 mod grid;
 mod mesh;
+mod spacing;
 
 pub use cancel::{requested as cancel_requested, with_cancel};
 pub use grid::Work as KnnWork;
 pub use mesh::{MeshAdjacency, RingScratch};
+pub use spacing::median_spacing;
 
 use std::num::NonZeroUsize;
 use std::sync::OnceLock;

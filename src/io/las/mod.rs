@@ -259,6 +259,40 @@ impl LasMeta {
         self.record_len
     }
 
+    /// Bytes of the point format's standard fields (the record without its extra bytes).
+    pub fn base_record_len(&self) -> usize {
+        BASE_LEN[usize::from(self.format)]
+    }
+
+    /// The system identifier of the public header (NUL padding removed).
+    pub fn system_identifier(&self) -> String {
+        self.header.get(26..58).map(fixed_str).unwrap_or_default()
+    }
+
+    /// The generating software of the public header (NUL padding removed).
+    pub fn generating_software(&self) -> String {
+        self.header.get(58..90).map(fixed_str).unwrap_or_default()
+    }
+
+    /// The file creation day of year and year of the public header.
+    pub fn creation(&self) -> (u16, u16) {
+        (get_u16(&self.header, 90), get_u16(&self.header, 92))
+    }
+
+    /// The bounds the header states, as (min, max) x, y, z.
+    pub fn header_bounds(&self) -> (DVec3, DVec3) {
+        let f = |at: usize| {
+            self.header.get(at..at + 8).map_or(f64::NAN, |b| {
+                f64::from_le_bytes(b.try_into().expect("eight bytes"))
+            })
+        };
+        // Max X, Min X, Max Y, Min Y, Max Z, Min Z from byte 179.
+        (
+            DVec3::new(f(187), f(203), f(219)),
+            DVec3::new(f(179), f(195), f(211)),
+        )
+    }
+
     /// Number of extra bytes per record.
     pub fn extra_bytes(&self) -> usize {
         self.record_len - BASE_LEN[usize::from(self.format)]
