@@ -8,6 +8,7 @@ use std::path::{Path, PathBuf};
 
 use clap::{Args, Parser, Subcommand, ValueEnum};
 
+use crate::eval::lidar::{Frame, SensorFlags, SensorKind};
 use crate::io::Format;
 use crate::io::raw::BinLayout;
 use crate::pipeline::SpecOverlay;
@@ -29,8 +30,11 @@ pub enum Command {
     /// Describe a file: format, point count, schema and extra fields, bounds, CRS, scale and
     /// offset, point spacing, classes present (as `pdal info` and `lasinfo`).
     Info(InfoArgs),
-    /// Generate a synthetic shape (mesh, or point samples with --points).
+    /// Generate a synthetic shape (mesh, or point samples with --points), or with `synth lidar` a
+    /// simulated LiDAR scan of a street with exact truth.
     Synth(SynthArgs),
+    /// Score a denoised simulated scan against its truth (`qemd synth lidar --truth`), per class.
+    Score(ScoreArgs),
     /// Add seeded noise to a mesh or point cloud.
     Noise(NoiseArgs),
     /// The real-scan protocol: displacement over each point's 16-NN radius (do no harm), or with
@@ -365,12 +369,17 @@ impl InfoArgs {
 
 /// Flags of `qemd synth`.
 #[derive(Debug, Args)]
+#[command(args_conflicts_with_subcommands = true, subcommand_negates_reqs = true)]
 pub struct SynthArgs {
+    /// `lidar`: a simulated scan instead of a shape.
+    #[command(subcommand)]
+    pub command: Option<SynthCommand>,
     /// sphere, cube, csg, torus or step.
-    pub shape: String,
+    #[arg(required = true)]
+    pub shape: Option<String>,
     /// Output file.
-    #[arg(short, long)]
-    pub output: PathBuf,
+    #[arg(short, long, required = true)]
+    pub output: Option<PathBuf>,
     /// Mesh resolution (subdivision level for the sphere, cells per edge otherwise).
     #[arg(long)]
     pub resolution: Option<usize>,
@@ -380,6 +389,98 @@ pub struct SynthArgs {
     /// Seed of the point sampler.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+}
+
+/// `qemd synth` subcommands.
+#[derive(Debug, Subcommand)]
+pub enum SynthCommand {
+    /// Simulate a LiDAR scan of a parametric street with exact truth: the noisy scan (-o), the
+    /// same returns without noise (--clean), the truth (--truth) and the trajectory.
+    Lidar(Box<LidarArgs>),
+}
+
+/// Flags of `qemd synth lidar`; the sensor's defaults are in `eval::lidar::sensors`.
+#[derive(Debug, Args)]
+pub struct LidarArgs {
+    /// The noisy scan: .las, .laz, .ply, .xyz, .pcd, .bin (KITTI) or .pcd.bin (nuScenes).
+    #[arg(short, long)]
+    pub output: PathBuf,
+    /// The sensor.
+    #[arg(long, value_enum, default_value_t = SensorKind::Spinning)]
+    pub sensor: SensorKind,
+    /// Seed of the noise, jitter and dropouts (and of the scene, unless --scene-seed).
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Seed of the scene [default: --seed].
+    #[arg(long)]
+    pub scene_seed: Option<u64>,
+    /// Write the same returns without range noise and angular jitter here (any scan format).
+    #[arg(long)]
+    pub clean: Option<PathBuf>,
+    /// Write the truth here (PLY: the scene mesh and each return's noise-free position).
+    #[arg(long)]
+    pub truth: Option<PathBuf>,
+    /// Write the sensor's position over time here (text: gps_time x y z per line).
+    #[arg(long)]
+    pub trajectory_out: Option<PathBuf>,
+    /// Frame of every file [default: sensor for a sweep written as .pcd, .bin or .pcd.bin,
+    /// street otherwise].
+    #[arg(long, value_enum)]
+    pub frame: Option<Frame>,
+    /// The scene (only `street` so far).
+    #[arg(long, default_value = "street", value_parser = ["street"])]
+    pub scene: String,
+    /// Length of the street (m).
+    #[arg(long, default_value_t = crate::eval::lidar::street::DEFAULT_LENGTH)]
+    pub length: f64,
+    /// The sculpted object on a sidewalk: torus, sphere, cube, csg or none.
+    #[arg(long, default_value = "torus")]
+    pub object: String,
+    /// A mesh file (PLY, OBJ, OFF) placed into the scene as an `object`.
+    #[arg(long)]
+    pub mesh: Option<PathBuf>,
+    /// Where the bottom centre of the mesh's bounding box goes, X,Y,Z in the street frame
+    /// [default: a free spot on a sidewalk].
+    #[arg(long, value_parser = crate::eval::lidar::sensors::parse_xyz, allow_hyphen_values = true)]
+    pub mesh_at: Option<glam::DVec3>,
+    /// Scale factor of the mesh [default: its largest extent becomes 1.5 m].
+    #[arg(long)]
+    pub mesh_scale: Option<f64>,
+    /// The mesh's up axis (y: turned to z).
+    #[arg(long, value_enum, default_value_t = UpArg::Z)]
+    pub mesh_up: UpArg,
+    /// The sensor's settings (each keeps the preset's value unless given).
+    #[command(flatten)]
+    pub sensor_flags: SensorFlags,
+    /// Print a JSON summary on standard output.
+    #[arg(long)]
+    pub json: bool,
+    /// Print nothing but errors.
+    #[arg(short, long)]
+    pub quiet: bool,
+}
+
+/// Flags of `qemd score`.
+#[derive(Debug, Args)]
+pub struct ScoreArgs {
+    /// The denoised scan (any readable format; same points in the same order as the truth).
+    pub output: PathBuf,
+    /// The truth file of `qemd synth lidar --truth`.
+    #[arg(long)]
+    pub truth: PathBuf,
+    /// What went into the denoiser (the noisy scan; with --calm the clean one): adds the input's
+    /// errors and the ratios.
+    #[arg(long, visible_alias = "input")]
+    pub noisy: Option<PathBuf>,
+    /// The output denoised the noise-free scan: report each point's move over σ.
+    #[arg(long)]
+    pub calm: bool,
+    /// σ of --calm [default: the truth's].
+    #[arg(long)]
+    pub sigma: Option<f64>,
+    /// Print JSON instead of a table.
+    #[arg(long)]
+    pub json: bool,
 }
 
 /// Flags of `qemd noise`.

@@ -14,8 +14,8 @@ use qem_denoise::api::ApiSettings;
 use qem_denoise::api::server::{ServeOptions, Server, shutdown_signal};
 use qem_denoise::cli::{
     Cli, Command, DemoArgs, DenoiseArgs, EvalArgs, FinishArgs, HarmArgs, InfoArgs, K8sArgs,
-    NoiseArgs, NoiseUnit, PlanArgs, RenderArgs, ReportArgs, ServeArgs, SpectrumArgs, StatusArgs,
-    SynthArgs, TableArgs, WorkerArgs,
+    LidarArgs, NoiseArgs, NoiseUnit, PlanArgs, RenderArgs, ReportArgs, ScoreArgs, ServeArgs,
+    SpectrumArgs, StatusArgs, SynthArgs, SynthCommand, TableArgs, UpArg, WorkerArgs,
 };
 use qem_denoise::config::{Config, LogFormat};
 use qem_denoise::denoise::{self, Params};
@@ -73,6 +73,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Denoise(a) => denoise(*a),
         Command::Info(a) => info(&a),
         Command::Synth(a) => synth(a),
+        Command::Score(a) => score(a),
         Command::Noise(a) => noise(a),
         Command::Harm(a) => harm(a),
         Command::Eval(a) => eval(a),
@@ -544,6 +545,19 @@ fn denoise(a: DenoiseArgs) -> Result<()> {
 }
 
 fn synth(a: SynthArgs) -> Result<()> {
+    if let Some(SynthCommand::Lidar(l)) = a.command {
+        return lidar(*l);
+    }
+    let (Some(shape), Some(output)) = (a.shape, a.output) else {
+        anyhow::bail!("qemd synth needs a shape and -o (or the `lidar` subcommand)");
+    };
+    let a = SynthShape {
+        shape,
+        output,
+        resolution: a.resolution,
+        points: a.points,
+        seed: a.seed,
+    };
     let shape: Shape = a.shape.parse()?;
     let resolution = match a.resolution {
         Some(r) => u32::try_from(r).context("--resolution is too large")?,
@@ -583,6 +597,145 @@ fn synth(a: SynthArgs) -> Result<()> {
                 a.output.display()
             );
         }
+    }
+    Ok(())
+}
+
+/// `qemd synth SHAPE` once the subcommand is ruled out.
+struct SynthShape {
+    shape: String,
+    output: std::path::PathBuf,
+    resolution: Option<usize>,
+    points: Option<u64>,
+    seed: u64,
+}
+
+fn lidar(a: LidarArgs) -> Result<()> {
+    use qem_denoise::eval::lidar::{self, LidarSpec, StreetSpec, writers};
+    let started = std::time::Instant::now();
+    let format = writers::scan_format(&a.output)?;
+    for p in [&a.clean].into_iter().flatten() {
+        writers::scan_format(p)?;
+    }
+    let object = match a.object.as_str() {
+        "none" => None,
+        s => Some(s.parse::<Shape>()?),
+    };
+    let mesh = match &a.mesh {
+        Some(path) => {
+            let cloud = Cloud::read(path, None)?;
+            let faces = cloud.faces().cloned().with_context(|| {
+                format!("{}: --mesh needs a mesh (no faces found)", path.display())
+            })?;
+            Some(lidar::street::PlacedMesh {
+                positions: cloud.positions,
+                faces,
+                at: a.mesh_at,
+                scale: a.mesh_scale,
+                y_up: a.mesh_up == UpArg::Y,
+            })
+        }
+        None => None,
+    };
+    let spec = LidarSpec {
+        sensor: a.sensor,
+        flags: a.sensor_flags.clone(),
+        street: StreetSpec {
+            length: a.length,
+            object,
+            mesh,
+        },
+        seed: a.seed,
+        scene_seed: a.scene_seed.unwrap_or(a.seed),
+        frame: a.frame,
+    };
+    let sim = lidar::simulate(&spec, format)?;
+    sim.write_scan(&a.output, false)?;
+    if let Some(p) = &a.clean {
+        sim.write_scan(p, true)?;
+    }
+    if let Some(p) = &a.truth {
+        sim.truth(spec.seed, spec.scene_seed).write(p)?;
+    }
+    let trajectory = sim.trajectory();
+    if let Some(p) = &a.trajectory_out {
+        trajectory.write(p)?;
+    }
+    let per_kind = sim.returns_per_kind();
+    let mixed = sim.returns.iter().filter(|r| r.mixed).count();
+    let offcentre = sim.returns.iter().filter(|r| r.offcentre).count();
+    let origin = trajectory.samples.first().map(|s| s.1);
+    let summary = serde_json::json!({
+        "sensor": sim.sensor_name(),
+        "pulses": sim.pulses.len(),
+        "returns": sim.returns.len(),
+        "mixed": mixed,
+        "offcentre": offcentre,
+        "per_kind": per_kind.iter().map(|(k, n)| (k.name().to_string(), *n)).collect::<std::collections::BTreeMap<_, _>>(),
+        "triangles": sim.street.scene.triangles.len(),
+        "frame": sim.frame,
+        "frame_origin": sim.frame_origin.to_array(),
+        "sensor_origin": origin.map(|o| o.to_array()),
+        "physics": sim.sensor.physics,
+        "geometry": sim.sensor.geometry,
+        "layout": sim.street.layout,
+        "seconds": started.elapsed().as_secs_f64(),
+    });
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&summary)?);
+    }
+    if !a.quiet {
+        let kinds: Vec<String> = per_kind.iter().map(|(k, n)| format!("{k} {n}")).collect();
+        eprintln!(
+            "qemd: {} over a {} m street (scene seed {}, seed {}): {} returns of {} pulses \
+             ({mixed} mixed, {offcentre} off-centre; {}) in {:.1} s",
+            sim.sensor_name(),
+            a.length,
+            spec.scene_seed,
+            spec.seed,
+            sim.returns.len(),
+            sim.pulses.len(),
+            kinds.join(", "),
+            started.elapsed().as_secs_f64()
+        );
+        if let Some(o) = origin {
+            let fixed = trajectory.samples.iter().all(|s| s.1 == o);
+            eprintln!(
+                "qemd: frame {:?}; sensor origin {} {},{},{} (σ = {} m)",
+                sim.frame,
+                if fixed { "at" } else { "starts at" },
+                o.x,
+                o.y,
+                o.z,
+                sim.sensor.physics.sigma
+            );
+        }
+    }
+    Ok(())
+}
+
+fn score(a: ScoreArgs) -> Result<()> {
+    use qem_denoise::eval::lidar::{Truth, score::ScoreSpec};
+    let truth = Truth::read(&a.truth)?;
+    let output = Cloud::read(&a.output, None)?;
+    let input = match &a.noisy {
+        Some(p) => Some(Cloud::read(p, None)?),
+        None => None,
+    };
+    let s = qem_denoise::eval::lidar::score(
+        &truth,
+        &output,
+        &a.output,
+        input.as_ref().zip(a.noisy.as_deref()),
+        ScoreSpec {
+            calm: a.calm,
+            sigma: a.sigma,
+        },
+    )?;
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&s)?);
+    } else {
+        print!("{}", s.table());
     }
     Ok(())
 }

@@ -21,6 +21,7 @@ mod io_las;
 mod io_pcd;
 mod io_ply;
 mod issue12;
+mod issue47;
 mod k8s;
 mod knn_bounds;
 mod normals;

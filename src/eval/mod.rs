@@ -19,6 +19,9 @@
 //! * [`pairs`]: the real clean/noisy benchmark pairs, measured per method.
 //! * [`scans`]: the real-scan protocol (`qemd harm`): displacement over r16 on the scan as it is,
 //!   and noise removed from the scan plus known noise, per class.
+//! * [`lidar`]: a LiDAR simulator with exact truth (a parametric street, spinning, mobile,
+//!   airborne and terrestrial sensors, beam physics) and its scorer (`qemd synth lidar`,
+//!   `qemd score`).
 //! * [`report`](mod@report): the quality report (`qemd report`): Table I for four rows, charts,
 //!   renderings, the pairs and the frequency response as HTML and Markdown.
 //!
@@ -31,6 +34,7 @@
 //! Everything here works on in-memory positions and [`Faces`]; reading and writing files is the
 //! caller's business (except PNG output, which goes through [`crate::io::AtomicFile`]).
 
+pub mod lidar;
 pub(crate) mod methods;
 pub mod metrics;
 pub mod noise;

@@ -150,7 +150,8 @@ pub struct Spread {
 }
 
 impl Spread {
-    fn of(mut xs: Vec<f64>) -> Spread {
+    /// p50, p99 and max of `xs` (zeros when empty).
+    pub fn of(mut xs: Vec<f64>) -> Spread {
         if xs.is_empty() {
             return Spread::default();
         }

@@ -81,7 +81,8 @@
 //! and offset. Float x, y, z keep their type (`f32` stays `f32`). (LAS output chooses its own
 //! scale and offset, KITTI stores `f32`, and OBJ/OFF print positions as the text sinks do.)
 //!
-//! One backend per format lives in its own module; this module only dispatches.
+//! One backend per format lives in its own module; this module only dispatches. [`trajectory`]
+//! holds the sensor trajectory text format (GPS time, x, y, z per line).
 
 pub mod classes;
 pub mod crs;
@@ -99,6 +100,7 @@ pub mod reader;
 pub mod sniff;
 pub(crate) mod tally;
 pub mod text;
+pub mod trajectory;
 
 pub use input::{InputFile, is_stream_input};
 pub use lines::LineEnding;
