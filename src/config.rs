@@ -32,6 +32,9 @@ pub const KEYS: &[&str] = &[
     "preview_points",
     "job_time_limit",
     "sync_time_limit",
+    "header_read_timeout",
+    "body_read_timeout",
+    "max_connections_per_address",
     "log_format",
     "log_level",
     "executor",
@@ -114,6 +117,14 @@ pub struct Config {
     /// `serve`: wall-clock limit of a synchronous request.
     #[serde(with = "duration")]
     pub sync_time_limit: Duration,
+    /// `serve`: time a connection has to send a request's headers.
+    #[serde(with = "duration")]
+    pub header_read_timeout: Duration,
+    /// `serve`: longest stall of a request body between chunks.
+    #[serde(with = "duration")]
+    pub body_read_timeout: Duration,
+    /// `serve`: connections open at once from one client address.
+    pub max_connections_per_address: usize,
     /// `serve`: log line format.
     pub log_format: LogFormat,
     /// `serve`: log filter (tracing `EnvFilter` syntax).
@@ -192,6 +203,12 @@ impl Config {
         if !(1..=1_000_000).contains(&self.queue_capacity) {
             return bad("queue_capacity", "must be between 1 and 1000000");
         }
+        if !(1..=1_000_000).contains(&self.max_connections_per_address) {
+            return bad(
+                "max_connections_per_address",
+                "must be between 1 and 1000000",
+            );
+        }
         if !(1..=4096).contains(&self.sync_concurrency) {
             return bad("sync_concurrency", "must be between 1 and 4096");
         }
@@ -205,6 +222,8 @@ impl Config {
         for (key, limit) in [
             ("job_time_limit", self.job_time_limit),
             ("sync_time_limit", self.sync_time_limit),
+            ("header_read_timeout", self.header_read_timeout),
+            ("body_read_timeout", self.body_read_timeout),
         ] {
             if !limits.contains(&limit) {
                 return bad(key, "must be between 1s and 365days");

@@ -357,6 +357,11 @@ fn serve(a: ServeArgs) -> Result<()> {
             max_sync_size: config.max_sync_size.as_u64(),
         },
         grace: Duration::from_secs(10),
+        connections: qem_denoise::api::conn::ConnLimits {
+            header: config.header_read_timeout,
+            body: config.body_read_timeout,
+            per_address: config.max_connections_per_address,
+        },
     };
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()

@@ -5,7 +5,7 @@
 use std::path::{Path, PathBuf};
 use std::process::Output;
 
-use crate::util::{qemd, qemd_ok, s};
+use crate::util::{listing, qemd, qemd_ok, s};
 use qem_denoise::io::Cloud;
 
 /// Asserts a clean failure: exit code 1, one line on stderr naming `file` and containing
@@ -601,4 +601,128 @@ fn issue51_help_lists_every_input_and_says_what_the_flags_do() {
             "docs/EVALUATION.md does not define {metric}"
         );
     }
+}
+
+/// A fan: apex 0 and `n` rim vertices on a unit circle (heights jittered), triangles
+/// (0, i, i + 1) around, as an OFF file.
+fn fan_off(n: usize) -> String {
+    let mut s = format!("OFF\n{} {n} 0\n0 0 0\n", n + 1);
+    for i in 0..n {
+        let a = std::f64::consts::TAU * i as f64 / n as f64;
+        let z = 0.01 * ((i * 7919) % 13) as f64 / 13.0;
+        s += &format!("{} {} {z}\n", a.cos(), a.sin());
+    }
+    for i in 0..n {
+        s += &format!("3 0 {} {}\n", 1 + i, 1 + (i + 1) % n);
+    }
+    s
+}
+
+/// Issue 51: a valid mesh with a vertex in every triangle (a fan) used to cost time and memory
+/// quadratic in its size (16 000 triangles: 120 s, 1.97 GiB). Its neighbourhoods are now bounded:
+/// 20 000 triangles run in a few tens of MiB, in every method, and a budget too small for the
+/// mesh is refused before any work, naming the file.
+#[test]
+fn issue51_a_fan_mesh_runs_in_bounded_memory_and_meets_the_budget() {
+    let c = case("fan.off", fan_off(20_000).as_bytes());
+    let output = c.dir.path().join("out.off");
+    let report = c.dir.path().join("r.json");
+    for method in [&[][..], &["--paper"], &["--method", "bilateral"]] {
+        let mut args = vec![
+            "denoise",
+            s(&c.input),
+            "-o",
+            s(&output),
+            "--report",
+            s(&report),
+            "--memory-budget",
+            "64MiB",
+        ];
+        args.extend_from_slice(method);
+        qemd_ok(&args);
+        let r: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
+        let peak = r["peak_rss_bytes"].as_u64().unwrap();
+        assert!(peak < 200 << 20, "{method:?}: peak RSS {} MiB", peak >> 20);
+    }
+    std::fs::remove_file(&output).unwrap();
+    std::fs::remove_file(&report).unwrap();
+    let small = c.dir.path().join("small.off");
+    let out = qemd(&[
+        "denoise",
+        s(&c.input),
+        "-o",
+        s(&small),
+        "--memory-budget",
+        "1MiB",
+    ]);
+    assert_fails(&out, &c.input, "memory budget", c.dir.path(), &[&c.input]);
+}
+
+/// Issue 51: Ctrl-C stops mesh mode (it used to run to the end and write the output): the run
+/// exits 1 saying `cancelled`, soon, and leaves no output.
+#[test]
+fn issue51_ctrl_c_stops_mesh_mode() {
+    let (p, f) = grid(300);
+    let c = case("mesh.ply", &ply(&p, &f));
+    let child = std::process::Command::new(env!("CARGO_BIN_EXE_qemd"))
+        .args(["denoise", s(&c.input), "-o", s(&c.output)])
+        .args(["--iterations", "1000", "-q"])
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    std::thread::sleep(std::time::Duration::from_millis(1500));
+    let signalled = std::time::Instant::now();
+    let killed = std::process::Command::new("kill")
+        .args(["-INT", &child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(killed.success());
+    let out = child.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert!(err.contains("cancelled"), "{err}");
+    assert!(
+        signalled.elapsed() < std::time::Duration::from_secs(20),
+        "stopped {:?} after the signal",
+        signalled.elapsed()
+    );
+    assert_eq!(listing(c.dir.path()), ["mesh.ply"]);
+}
+
+/// Issue 51: `--solve plain --updates 1 --iterations 1`, the combination the refusal of the plain
+/// solve suggests, moved a vertex of the noisy bunny 254 bounding-box diagonals. No vertex moves
+/// beyond the faces around it now: on a noisy flat grid every move stays within an edge or two.
+#[test]
+fn issue51_the_plain_solve_on_a_mesh_is_bounded_by_its_faces() {
+    let (mut p, f) = grid(40);
+    let mut g = 0x9e37_79b9_7f4a_7c15u64;
+    for v in &mut p {
+        g ^= g << 13;
+        g ^= g >> 7;
+        g ^= g << 17;
+        // Flat, with noise of a tenth of the spacing: nearly flat 1-rings, where the plain solve
+        // drifts.
+        v[2] = ((g >> 11) as f64 / (1u64 << 53) as f64 - 0.5) * 0.2;
+    }
+    let c = case("flat.ply", &ply(&p, &f));
+    let report = c.dir.path().join("r.json");
+    qemd_ok(&[
+        "denoise",
+        s(&c.input),
+        "-o",
+        s(&c.output),
+        "--solve",
+        "plain",
+        "--updates",
+        "1",
+        "--iterations",
+        "1",
+        "--report",
+        s(&report),
+    ]);
+    let r: serde_json::Value = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
+    let max = r["stats"]["max_step"].as_f64().unwrap();
+    // The longest edges of the grid are diagonals, √2 long.
+    assert!(max <= 2.0, "a vertex moved {max}");
 }

@@ -26,6 +26,7 @@
 //! | `GET /` (the web page), `GET /web/{file}` (its files) | [`web`] |
 
 pub mod auth;
+pub mod conn;
 pub mod download;
 pub mod error;
 pub mod jobs;

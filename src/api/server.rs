@@ -50,6 +50,8 @@ pub struct ServeOptions {
     pub api: ApiSettings,
     /// How long in-flight requests and stopping jobs get at shutdown.
     pub grace: Duration,
+    /// The bounds every connection is held to.
+    pub connections: super::conn::ConnLimits,
 }
 
 /// A bound server, ready to run.
@@ -58,6 +60,7 @@ pub struct Server {
     listener: TcpListener,
     state: AppState,
     grace: Duration,
+    connections: super::conn::ConnLimits,
 }
 
 impl Server {
@@ -79,6 +82,7 @@ impl Server {
             listener,
             state,
             grace: opts.grace,
+            connections: opts.connections,
         })
     }
 
@@ -111,7 +115,7 @@ impl Server {
         let wait = |mut rx: tokio::sync::watch::Receiver<bool>| async move {
             let _ = rx.wait_for(|s| *s).await;
         };
-        let serve = axum::serve(self.listener, app).with_graceful_shutdown(wait(rx.clone()));
+        let serve = super::conn::serve(self.listener, app, self.connections, wait(rx.clone()));
         let deadline = {
             let grace = self.grace;
             let w = wait(rx);

@@ -11,11 +11,11 @@
 use glam::DVec3;
 use rayon::prelude::*;
 
-use super::common::{mean_edge_length, merge_step};
+use super::common::{check_cancel, mean_edge_length, merge_step};
 use super::normals::vertex_normals;
 use super::{DenoiseError, NormalWeighting, Output, Params, Stats, Timer, origin_of};
 use crate::geometry::{ExactSum, exp};
-use crate::neighbours::{KnnIndex, MeshAdjacency, Neighbourhoods};
+use crate::neighbours::{HUB_VALENCE, KnnIndex, MeshAdjacency, Neighbourhoods};
 use crate::points::Faces;
 
 /// Mean distance from each finite point to its nearest other point, summed exactly, read off
@@ -81,6 +81,7 @@ pub fn mesh(pos: &[DVec3], faces: &Faces, params: &Params) -> Result<Output, Den
     let mut cur = pos.to_vec();
     let mut stayed = vec![0u8; pos.len()];
     for pass in 0..params.schedule(true).cycles {
+        check_cancel()?;
         let vn = vertex_normals(&cur, faces, NormalWeighting::Area);
         if pass == 0 {
             stats.zero_area_faces = vn.zero_area_faces;
@@ -96,8 +97,13 @@ pub fn mesh(pos: &[DVec3], faces: &Faces, params: &Params) -> Result<Output, Den
             .map_init(
                 || (Vec::new(), Vec::new()),
                 |(list, buf), v| {
+                    // The ball of 2σc, at most the HUB_VALENCE + 1 nearest (the vertex itself
+                    // among them): near the apex of a fan it holds most of the rim (issue 51).
+                    // Smaller balls are the whole ball, ascending by index as always.
                     list.clear();
-                    index.within_at(index.local(v), r2, list);
+                    index.knn_of(v, HUB_VALENCE + 1, list);
+                    list.retain(|&u| index.dist2(v, u as usize) <= r2);
+                    list.sort_unstable();
                     let nbrs = list
                         .iter()
                         .filter(|&&u| u as usize != v)

@@ -8,7 +8,7 @@ use glam::DVec3;
 use rayon::prelude::*;
 
 use crate::geometry::ExactSum;
-use crate::neighbours::MeshAdjacency;
+use crate::neighbours::{HUB_VALENCE, MeshAdjacency};
 use crate::points::Faces;
 
 /// Why a point stayed where it was in a pass (bit flags, or-ed over passes).
@@ -63,6 +63,20 @@ impl Within<'_> {
     }
 }
 
+/// [`NeighboursError::Cancelled`] once the cancel flag installed on this thread
+/// ([`crate::neighbours::with_cancel`]) is set: the mesh operators check it between passes (each
+/// pass's work is bounded by the mesh's size: no neighbourhood is larger than a hub allows).
+///
+/// # Errors
+/// The cancellation.
+pub fn check_cancel() -> Result<(), super::DenoiseError> {
+    if crate::neighbours::cancel_requested() {
+        Err(crate::neighbours::NeighboursError::Cancelled.into())
+    } else {
+        Ok(())
+    }
+}
+
 /// Splits a pass's results into positions, or-ing its [`stay`] flags into `stayed`.
 pub fn merge_step(step: Vec<(DVec3, u8)>, stayed: &mut [u8]) -> Vec<DVec3> {
     step.into_iter()
@@ -74,7 +88,8 @@ pub fn merge_step(step: Vec<(DVec3, u8)>, stayed: &mut [u8]) -> Vec<DVec3> {
         .collect()
 }
 
-/// Faces around each vertex and faces sharing a vertex with each face, in CSR form.
+/// Faces around each vertex and faces sharing a vertex with each face, in CSR form. A face's
+/// list holds at most 1 + 3 × [`HUB_VALENCE`] faces, whatever the mesh.
 #[derive(Debug, Clone)]
 pub struct FaceTopology {
     vertex_offsets: Vec<u32>,
@@ -104,18 +119,20 @@ impl FaceTopology {
                 fill[v as usize] += 1;
             }
         }
+        // A hub lends no faces (neighbours::HUB_VALENCE): through the apex of a fan every face
+        // would share a vertex with every other, N² in all (issue 51).
+        let around = |v: usize| {
+            let fs = &vertex_faces[vertex_offsets[v] as usize..vertex_offsets[v + 1] as usize];
+            if fs.len() > HUB_VALENCE { &[][..] } else { fs }
+        };
         let lists: Vec<Vec<u32>> = (0..faces.len())
             .into_par_iter()
             .map(|fi| {
                 let mut l: Vec<u32> = faces
                     .face(fi)
                     .iter()
-                    .flat_map(|&v| {
-                        let v = v as usize;
-                        vertex_faces[vertex_offsets[v] as usize..vertex_offsets[v + 1] as usize]
-                            .iter()
-                            .copied()
-                    })
+                    .flat_map(|&v| around(v as usize).iter().copied())
+                    .chain([fi as u32])
                     .collect();
                 l.sort_unstable();
                 l.dedup();
@@ -143,7 +160,8 @@ impl FaceTopology {
         &self.vertex_faces[self.vertex_offsets[v] as usize..self.vertex_offsets[v + 1] as usize]
     }
 
-    /// The faces sharing a vertex with face `f` (itself included), ascending.
+    /// The faces sharing a vertex with face `f` (itself included), ascending; a hub's faces
+    /// (more than [`HUB_VALENCE`] around it) are not shared through it.
     #[inline]
     pub fn neighbours_of(&self, f: usize) -> &[u32] {
         &self.face_neighbours[self.face_offsets[f] as usize..self.face_offsets[f + 1] as usize]
@@ -245,6 +263,24 @@ fn median16(xs: &[f64]) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn issue51_a_fans_faces_share_no_faces_through_its_apex() {
+        // Apex 0, rim 1..=n, triangles (0, i, i + 1): every face touches the apex.
+        let n = 4000u32;
+        let mut faces = Faces::new();
+        for i in 1..n {
+            faces.push(&[0, i, i + 1]);
+        }
+        let t = FaceTopology::build(n as usize + 1, &faces);
+        // Face i shares its rim vertices with faces i − 1 and i + 1 only.
+        assert_eq!(t.neighbours_of(100), &[99, 100, 101]);
+        assert_eq!(t.neighbours_of(0), &[0, 1]);
+        let longest = (0..faces.len()).map(|f| t.neighbours_of(f).len()).max();
+        assert_eq!(longest, Some(3));
+        // The apex still has every face around it (the update sums their planes).
+        assert_eq!(t.faces_of(0).len(), faces.len());
+    }
 
     #[test]
     fn the_median_is_the_selected_value_for_every_length_and_value() {

@@ -29,7 +29,7 @@
 use glam::DVec3;
 use rayon::prelude::*;
 
-use super::common::{FaceTopology, mean_edge_length, merge_step, stay};
+use super::common::{FaceTopology, check_cancel, mean_edge_length, merge_step, stay};
 use super::normals::{face_cross, vertex_normals};
 use super::{DenoiseError, NormalWeighting, Output, Params, Stats, Timer};
 use crate::geometry::{ExactSum, Quadric, exp};
@@ -81,6 +81,9 @@ pub fn median_normal_difference(topo: &FaceTopology, normals: &[DVec3]) -> f64 {
 /// `iterations` bilateral filter passes over the face normals (Zheng et al. 2011): each normal
 /// becomes the normalised sum of its neighbours' normals weighted by area, distance (σs) and
 /// normal difference (σr = max(median difference, `sigma_r_floor`), recomputed every pass).
+///
+/// # Errors
+/// Cancellation ([`check_cancel`], before every pass).
 pub fn filter_normals(
     topo: &FaceTopology,
     normals: &[DVec3],
@@ -89,10 +92,11 @@ pub fn filter_normals(
     sigma_s: f64,
     sigma_r_floor: f64,
     iterations: usize,
-) -> Vec<DVec3> {
+) -> Result<Vec<DVec3>, DenoiseError> {
     let mut n = normals.to_vec();
     let ss2 = 2.0 * sigma_s * sigma_s;
     for _ in 0..iterations {
+        check_cancel()?;
         let sr = median_normal_difference(topo, &n).max(sigma_r_floor);
         let sr2 = 2.0 * sr * sr;
         n = (0..n.len())
@@ -111,11 +115,12 @@ pub fn filter_normals(
             })
             .collect();
     }
-    n
+    Ok(n)
 }
 
 /// One update: every vertex moves to the damped minimiser of the area-weighted planes of the
-/// faces around it (`normals[f]` through the current centroid).
+/// faces around it (`normals[f]` through the current centroid), unless the minimiser lies
+/// farther than the farthest of those centroids (the vertex stays, counted as `far`).
 pub fn face_plane_step(
     pos: &[DVec3],
     faces: &Faces,
@@ -130,13 +135,20 @@ pub fn face_plane_step(
         .map(|v| {
             let p = pos[v];
             let mut q = Quadric::ZERO;
+            // The farthest centroid of the planes summed: no step goes beyond what they span.
+            let mut reach2 = 0.0f64;
             for &f in topo.faces_of(v) {
                 let f = f as usize;
                 if normals[f] != DVec3::ZERO && areas[f] > 0.0 {
                     q.add_plane(normals[f], centroids[f] - p, areas[f]);
+                    reach2 = reach2.max((centroids[f] - p).length_squared());
                 }
             }
             match params.solver_for(q.a.trace()).offset(&q) {
+                // A minimiser beyond the faces around the vertex is a nearly flat direction's
+                // drift, not the surface: the plain solve put a vertex of the noisy bunny 254
+                // bounding-box diagonals away in one update (issue 51).
+                Some(w) if w.length_squared() > reach2 => (p, stay::FAR),
                 Some(w) => (p + w, 0),
                 None => (p, stay::SINGULAR),
             }
@@ -158,16 +170,21 @@ struct Run<'a> {
 
 impl Run<'_> {
     /// One cycle: filter the current face normals, then run `updates` updates with them.
-    fn cycle(&mut self, filter: usize, updates: usize) {
+    ///
+    /// # Errors
+    /// Cancellation, checked before every filter pass and update.
+    fn cycle(&mut self, filter: usize, updates: usize) -> Result<(), DenoiseError> {
         let (n, c, a) = face_geometry(&self.cur, self.faces);
         let floor = self.params.sigma_r_floor(true);
-        let n = filter_normals(&self.topo, &n, &c, &a, self.sigma_s, floor, filter);
+        let n = filter_normals(&self.topo, &n, &c, &a, self.sigma_s, floor, filter)?;
         self.timer.lap("normals", &mut self.stats);
         for _ in 0..updates {
+            check_cancel()?;
             let step = face_plane_step(&self.cur, self.faces, &self.topo, &n, self.params);
             self.cur = merge_step(step, &mut self.stayed);
         }
         self.timer.lap("solve", &mut self.stats);
+        Ok(())
     }
 
     fn normal_difference(&self) -> f64 {
@@ -238,11 +255,11 @@ pub fn mesh(pos: &[DVec3], faces: &Faces, params: &Params) -> Result<Output, Den
     };
     if s.cycles > 0 {
         for _ in 0..s.cycles {
-            run.cycle(s.filter, s.updates);
+            run.cycle(s.filter, s.updates)?;
         }
     } else {
         let m0 = run.normal_difference();
-        run.cycle(3, 3);
+        run.cycle(3, 3)?;
         let m1 = run.normal_difference();
         let strong = m0 >= 1.3;
         // What the light cycle left is shape on a coarse mesh (neighbouring faces differ because
@@ -252,7 +269,7 @@ pub fn mesh(pos: &[DVec3], faces: &Faces, params: &Params) -> Result<Output, Den
         let share = 0.42 + 0.13 * ((m0 - 0.7) / 0.4).clamp(0.0, 1.0);
         if strong || m1 < share * m0 {
             for _ in 0..if strong { 3 } else { 2 } {
-                run.cycle(s.filter, s.updates);
+                run.cycle(s.filter, s.updates)?;
             }
         }
     }
@@ -321,7 +338,7 @@ mod tests {
         let faces = Faces::from_triangles(&tris);
         let (n, c, a) = face_geometry(&pos, &faces);
         let topo = FaceTopology::build(pos.len(), &faces);
-        let f = filter_normals(&topo, &n, &c, &a, 1.0, 0.35, 10);
+        let f = filter_normals(&topo, &n, &c, &a, 1.0, 0.35, 10).unwrap();
         for v in &f {
             assert!((v.dot(DVec3::Z).abs() - 1.0).abs() < 1e-12);
         }

@@ -7,7 +7,7 @@
 use glam::DVec3;
 use rayon::prelude::*;
 
-use super::common::{FaceTopology, mean_edge_length, merge_step, stay};
+use super::common::{FaceTopology, check_cancel, mean_edge_length, merge_step, stay};
 use super::filtered::{face_geometry, filter_normals};
 use super::normals::vertex_normals;
 use super::{DenoiseError, NormalWeighting, Output, Params, Planes, SolveKind, Stats, Timer};
@@ -105,6 +105,7 @@ pub fn mesh(pos: &[DVec3], faces: &Faces, params: &Params) -> Result<Output, Den
     stats.zero_area_faces = first.zero_area_faces;
     stats.unreferenced = first.unreferenced;
     for _ in 0..s.cycles.max(1) {
+        check_cancel()?;
         let filtered = (s.filter > 0).then(|| {
             let (n, c, a) = face_geometry(&cur, faces);
             let n = filter_normals(
@@ -115,11 +116,19 @@ pub fn mesh(pos: &[DVec3], faces: &Faces, params: &Params) -> Result<Output, Den
                 sigma_s,
                 params.sigma_r_floor(true),
                 s.filter,
-            );
-            weighted_vertex_normals(cur.len(), faces, &n, &a, params.normals)
+            )?;
+            Ok::<_, DenoiseError>(weighted_vertex_normals(
+                cur.len(),
+                faces,
+                &n,
+                &a,
+                params.normals,
+            ))
         });
+        let filtered = filtered.transpose()?;
         timer.lap("normals", &mut stats);
         for _ in 0..s.updates {
+            check_cancel()?;
             let normals = match &filtered {
                 Some(n) => n.clone(),
                 None => vertex_normals(&cur, faces, params.normals).normals,

@@ -23,6 +23,7 @@ pub const SYNC_TIME_LIMIT: Duration = Duration::from_secs(60);
 /// A limit running against one run; dropping it disarms the timer.
 pub(super) struct Deadline {
     limit: Duration,
+    at: tokio::time::Instant,
     key: &'static str,
     expired: Arc<AtomicBool>,
     timer: tokio::task::JoinHandle<()>,
@@ -41,10 +42,16 @@ impl Deadline {
         });
         Deadline {
             limit,
+            at: tokio::time::Instant::now() + limit,
             key,
             expired,
             timer,
         }
+    }
+
+    /// Completes once the limit has passed.
+    pub(super) async fn passed(&self) {
+        tokio::time::sleep_until(self.at).await;
     }
 
     /// True once the limit has passed (and the cancel flag was set for it).

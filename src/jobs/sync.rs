@@ -11,6 +11,16 @@ use super::service::Jobs;
 use super::{JobsError, bridge};
 use crate::pipeline::{self, Job, NoProgress, PipelineError, RunOptions};
 
+/// A synchronous request's slot and core, given back when the run that holds them ends.
+struct Held(Arc<super::service::Inner>);
+
+impl Drop for Held {
+    fn drop(&mut self) {
+        self.0.sync_running.add_permits(1);
+        self.0.sync_slots.add_permits(1);
+    }
+}
+
 impl Jobs {
     /// Denoises `body` (a whole file in `req.format`) now and returns the result; the CPU work
     /// runs on the synchronous path's rayon pool. Dropping the future cancels the run.
@@ -27,7 +37,7 @@ impl Jobs {
         if self.shutting_down() {
             return Err(JobsError::ShuttingDown);
         }
-        let _slot = self.inner.sync_slots.try_acquire().map_err(|_| {
+        let slot = self.inner.sync_slots.try_acquire().map_err(|_| {
             // A 429 is a rejected request too (issue 15: it was not counted).
             let m = &self.inner.metrics;
             m.sync_requests.with_label_values(&["rejected"]).inc();
@@ -54,13 +64,19 @@ impl Jobs {
         let deadline = Deadline::arm(limit, "sync_time_limit", cancel.clone());
         let tmp = self.data_dir().join("tmp");
         let budget = self.inner.settings.memory_budget;
-        let _running = self
+        let running = self
             .inner
             .sync_running
             .acquire()
             .await
             .map_err(|_| JobsError::ShuttingDown)?;
+        // The request's slot and core stay taken until the run itself ends, which may be after
+        // the answer (a run past the limit stops at its next check): the worker gives them back.
+        slot.forget();
+        running.forget();
+        let held = Held(self.inner.clone());
         let run = bridge::cpu(&self.inner.sync_pool, move || {
+            let _held = held;
             // Errors and the report name the request's `input` and `result.<format>`.
             let job = Job {
                 input: PathBuf::from("input"),
@@ -89,8 +105,13 @@ impl Jobs {
                 Err(PipelineError::Params(e)) => Err(spec_error(e)),
                 Err(e) => Err(JobsError::Run(e)),
             }
-        })
-        .await;
+        });
+        // The answer comes at the limit, not when the run gets to its next check (issue 51: a
+        // 20 s limit answered after 71 s).
+        let run = tokio::select! {
+            r = run => r,
+            () = deadline.passed() => Ok(Err(deadline.error())),
+        };
         deadline.disarm();
         let run = match run {
             // Stopped by the limit (a cancelled run is not the client's fault, hence Internal).

@@ -1,7 +1,18 @@
 //! Vertex adjacency of a polygon mesh and k-ring walks.
+//!
+//! A ring does not walk on through a **hub**, a vertex with more than [`HUB_VALENCE`] neighbours
+//! (the apex of a triangle fan, the pole of a UV sphere with many segments): the hub joins the
+//! ring, its neighbours do not come with it. Otherwise the 2-ring of each of a fan's N rim
+//! vertices would hold every rim vertex, N² in all (issue 51: a 833 KB OFF fan took 120 s and
+//! 2 GiB). A ring centred on a hub still holds the hub's neighbours. Meshes without hubs get the
+//! rings they always had.
 
 use super::NeighboursError;
 use crate::points::Faces;
+
+/// The most neighbours (or incident faces) a vertex may have and still lend them to the
+/// neighbourhoods of others; the vertices of ordinary meshes have 3 to 20.
+pub const HUB_VALENCE: usize = 64;
 
 /// Vertex–vertex adjacency (unique, ascending) in CSR form, built from polygon edges.
 #[derive(Debug, Clone, Default)]
@@ -119,8 +130,9 @@ impl MeshAdjacency {
     }
 
     /// The k-ring `N_k(v)`: `v` itself, then every vertex within `k` edges, in breadth-first order
-    /// (ring by ring, each ring in the order its vertices are reached from ascending lists).
-    /// Replaces the contents of `out`.
+    /// (ring by ring, each ring in the order its vertices are reached from ascending lists),
+    /// walking on through no hub but `v` itself (the [module overview](self)). Replaces the
+    /// contents of `out`.
     pub fn ring(&self, v: usize, k: usize, scratch: &mut RingScratch, out: &mut Vec<u32>) {
         if scratch.stamp.len() < self.len() {
             scratch.stamp.resize(self.len(), 0);
@@ -139,6 +151,9 @@ impl MeshAdjacency {
             let end = out.len();
             for i in begin..end {
                 let w = out[i] as usize;
+                if i > 0 && self.neighbours(w).len() > HUB_VALENCE {
+                    continue;
+                }
                 for &u in self.neighbours(w) {
                     if scratch.stamp[u as usize] != g {
                         scratch.stamp[u as usize] = g;
@@ -182,6 +197,34 @@ mod tests {
         assert_eq!(a.neighbours(0), &[1, 5]);
         // 4 top + 4 bottom + 5 rungs + 4 diagonals.
         assert_eq!(a.edges().count(), 17);
+    }
+
+    /// A fan: apex 0, rim 1..=n, triangles (0, i, i + 1).
+    fn fan(n: u32) -> Faces {
+        let mut f = Faces::new();
+        for i in 1..n {
+            f.push(&[0, i, i + 1]);
+        }
+        f
+    }
+
+    #[test]
+    fn issue51_rings_do_not_walk_through_a_hub() {
+        let n = 5000;
+        let a = MeshAdjacency::build(n as usize + 1, &fan(n)).unwrap();
+        let mut s = RingScratch::new(n as usize + 1);
+        let mut out = Vec::new();
+        // A rim vertex: the apex and its rim neighbours, not the whole rim.
+        a.ring(100, 2, &mut s, &mut out);
+        out.sort();
+        assert_eq!(out, vec![0, 98, 99, 100, 101, 102]);
+        // The apex's own ring holds its neighbours.
+        a.ring(0, 1, &mut s, &mut out);
+        assert_eq!(out.len(), n as usize + 1);
+        // A vertex of ordinary valence lends its neighbours as before.
+        let small = MeshAdjacency::build(11, &fan(10)).unwrap();
+        small.ring(5, 2, &mut s, &mut out);
+        assert_eq!(out.len(), 11);
     }
 
     #[test]

@@ -39,7 +39,7 @@ mod spacing;
 
 pub use cancel::{requested as cancel_requested, with_cancel};
 pub use grid::Work as KnnWork;
-pub use mesh::{MeshAdjacency, RingScratch};
+pub use mesh::{HUB_VALENCE, MeshAdjacency, RingScratch};
 pub use spacing::median_spacing;
 
 use std::num::NonZeroUsize;

@@ -72,7 +72,7 @@ pub fn run_bytes(
     let mut out = Some(out);
     let mut take = || out.take().expect("the in-memory drivers create one sink");
     let mut report = if mesh {
-        mesh::run_cloud(job, cloud, timer, |c| {
+        mesh::run_cloud(job, opts, cloud, timer, |c| {
             let sink = io::create_in(
                 take(),
                 output_format,

@@ -61,6 +61,27 @@ pub enum PipelineError {
         /// Input file.
         path: PathBuf,
     },
+    /// A mesh (which runs whole, in memory) needs more memory than the budget allows.
+    #[error(
+        "{path}: a mesh of {vertices} vertices and {faces} faces needs about {needed} in memory \
+         (a mesh runs whole), more than the memory budget of {budget}; raise --memory-budget \
+         (memory_budget in the service's configuration)",
+        path = .path.display(),
+        needed = bytesize::ByteSize(*.needed),
+        budget = bytesize::ByteSize(*.budget)
+    )]
+    MeshBudget {
+        /// Input file.
+        path: PathBuf,
+        /// Its vertices.
+        vertices: u64,
+        /// Its faces.
+        faces: u64,
+        /// Bytes it needs.
+        needed: u64,
+        /// The memory budget.
+        budget: u64,
+    },
     /// The run was cancelled (Ctrl-C, a job cancel).
     #[error("cancelled")]
     Cancelled,
@@ -102,14 +123,23 @@ impl PipelineError {
     }
 
     /// The same error naming the stream `input` where it named its spool.
-    /// True when the input (its content) or the parameters caused the failure, false for the
-    /// environment's failures (an OS error, the temporary directory, cancellation).
+    /// True when the input (its content) or the parameters caused the failure (a request larger
+    /// than the memory budget included), false for the environment's failures (an OS error, the
+    /// temporary directory, cancellation).
     pub fn is_input_fault(&self) -> bool {
         match self {
             PipelineError::Io(io) => !matches!(io, IoError::Io { .. }),
             PipelineError::Denoise { .. }
             | PipelineError::Params(_)
-            | PipelineError::NoClassField { .. } => true,
+            | PipelineError::NoClassField { .. }
+            | PipelineError::MeshBudget { .. } => true,
+            // The request asks for more than the memory budget can hold (a larger k, a longer
+            // reach): the request's to change, as a bad parameter is (issue 51: a sync request
+            // answered 500).
+            PipelineError::Tiling {
+                error: TilingError::Budget { .. } | TilingError::PointBudget { .. },
+                ..
+            } => true,
             _ => false,
         }
     }
@@ -132,6 +162,19 @@ impl PipelineError {
             PipelineError::NoClassField { path } => {
                 PipelineError::NoClassField { path: swap(path) }
             }
+            PipelineError::MeshBudget {
+                path,
+                vertices,
+                faces,
+                needed,
+                budget,
+            } => PipelineError::MeshBudget {
+                path: swap(path),
+                vertices,
+                faces,
+                needed,
+                budget,
+            },
             PipelineError::Report { path, detail } => PipelineError::Report {
                 path: swap(path),
                 detail,

@@ -180,7 +180,7 @@ fn run_file(job: &Job, opts: &RunOptions) -> Result<Report, PipelineError> {
     drop(source);
     let mut report = if job.spec.params.mesh_mode(info.has_faces()) {
         job.spec.check_mesh(true)?;
-        mesh::run(job)?
+        mesh::run(job, opts, &info)?
     } else {
         let per_point = bytes_per_point(&job.spec.params, info.schema.record_len);
         let fits = info
