@@ -39,7 +39,8 @@ fn main() -> ExitCode {
     match run(cli) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("qemd: error: {e:#}");
+            // A file's name or header may hold control characters (ESC, BEL): escaped.
+            eprintln!("qemd: error: {}", io::printable(&format!("{e:#}")));
             ExitCode::FAILURE
         }
     }
@@ -489,8 +490,8 @@ fn denoise(a: DenoiseArgs) -> Result<()> {
         let s = &report.stats;
         eprintln!(
             "qemd: {} → {}: {}, {} in, {} out ({} moved, {} stayed singular, {} degenerate, {} duplicates, {} outliers), {:.3} s wall / {:.3} s CPU, peak RSS {:.1} MiB",
-            report.input.display(),
-            report.output.display(),
+            io::printable(&report.input.to_string_lossy()),
+            io::printable(&report.output.to_string_lossy()),
             run_kind(&report),
             count(report.points_in, unit(&report)),
             report.points_out,

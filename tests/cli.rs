@@ -726,3 +726,100 @@ fn issue51_the_plain_solve_on_a_mesh_is_bounded_by_its_faces() {
     // The longest edges of the grid are diagonals, √2 long.
     assert!(max <= 2.0, "a vertex moved {max}");
 }
+
+/// Issue 51: control characters from a file's name or header (ESC, BEL) reach the terminal
+/// escaped, in errors and in `qemd info`.
+#[test]
+fn issue51_control_characters_in_errors_are_escaped() {
+    let d = tempfile::tempdir().unwrap();
+    let name = "bad\u{1b}[31mred\u{7}.pcd";
+    let bad = d.path().join(name);
+    std::fs::write(
+        &bad,
+        "VERSION 0.7\nFIELDS x y z \u{1b}]0;title\u{7}\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\n\
+         WIDTH 1\nHEIGHT 1\nPOINTS 1\nDATA ascii\n0 0 0\n",
+    )
+    .unwrap();
+    let out = qemd(&["denoise", s(&bad), "-o", s(&d.path().join("o.pcd"))]);
+    let err = String::from_utf8(out.stderr).unwrap();
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert!(
+        !err.contains(['\u{1b}', '\u{7}']),
+        "raw control characters: {err:?}"
+    );
+    assert!(err.contains("bad\\x1b[31mred\\x07.pcd"), "{err}");
+    // `info` on a readable file with such a name and comment.
+    let ply = d.path().join("a\u{1b}b.ply");
+    std::fs::write(
+        &ply,
+        "ply\nformat ascii 1.0\ncomment ring\u{7}\nelement vertex 3\nproperty float x\n\
+         property float y\nproperty float z\nend_header\n0 0 0\n1 0 0\n0 1 0\n",
+    )
+    .unwrap();
+    let out = qemd_ok(&["info", s(&ply)]);
+    let text = String::from_utf8(out.stdout).unwrap();
+    assert!(!text.contains(['\u{1b}', '\u{7}']), "{text:?}");
+    assert!(
+        text.contains("ring\\x07") && text.contains("a\\x1bb.ply"),
+        "{text}"
+    );
+}
+
+/// Issue 51: extra data is refused, not dropped or misread, with one line naming the file: PCD
+/// rows past `POINTS`, an ascii PCD body under `DATA binary`, an OFF whose header counts fewer
+/// faces than it holds, and counts no file of its size can hold (they named the temporary
+/// directory, "needs 16 EiB").
+#[test]
+fn issue51_extra_data_and_lying_counts_are_refused_naming_the_file() {
+    let pcd = |points: usize, data: &str, rows: usize| {
+        let mut s = format!(
+            "# .PCD v0.7\nVERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\n\
+             WIDTH {points}\nHEIGHT 1\nPOINTS {points}\nDATA {data}\n"
+        );
+        for i in 0..rows {
+            s += &format!("{}.5 {}.25 1.0\n", i % 7, i / 7);
+        }
+        s
+    };
+    let cases = [
+        (
+            "rows.pcd",
+            pcd(40, "ascii", 41),
+            "POINTS says 40, but more rows follow",
+        ),
+        (
+            "text.pcd",
+            pcd(40, "binary", 40),
+            "DATA binary, but the point data is text",
+        ),
+        (
+            "faces.off",
+            {
+                let (p, f) = grid(10);
+                let mut s = format!("OFF\n{} 0 0\n", p.len());
+                for v in &p {
+                    s += &format!("{} {} {}\n", v[0], v[1], v[2]);
+                }
+                for t in &f {
+                    s += &format!("3 {} {} {}\n", t[0], t[1], t[2]);
+                }
+                s
+            },
+            "the header declares 0 faces, but line",
+        ),
+        (
+            "huge.pts",
+            "18446744073709551000\n0 0 0\n1 0 0\n0 1 0\n".to_string(),
+            "the header declares 18446744073709551000 points",
+        ),
+        (
+            "huge.off",
+            "OFF\n18446744073709551000 0 0\n0 0 0\n1 0 0\n0 1 0\n".to_string(),
+            "the header declares 18446744073709551000 vertices",
+        ),
+    ];
+    for (name, body, needle) in cases {
+        let c = case(name, body.as_bytes());
+        denoise_fails(&c, &[], needle);
+    }
+}

@@ -612,3 +612,65 @@ fn issue12_e57_written_by_pye57_reads_denoises_and_reads_back_in_pye57() {
     assert!(lines[1].starts_with("20000 "), "{report}");
     assert_eq!(lines[2], "0 255", "{report}");
 }
+
+/// Issue 51: a scan pose with a NaN or zero quaternion (or a NaN translation) was read as no
+/// rotation; it is refused, naming the file and the scan.
+#[test]
+fn issue51_an_e57_pose_that_cannot_be_applied_is_refused() {
+    let d = tempfile::tempdir().unwrap();
+    let bad = [
+        (f64::NAN, DVec3::ZERO, "non-finite rotation"),
+        (0.0, DVec3::ZERO, "zero rotation"),
+        (
+            1.0,
+            DVec3::new(f64::NAN, 0.0, 0.0),
+            "non-finite translation",
+        ),
+    ];
+    for (k, (w, t, needle)) in bad.into_iter().enumerate() {
+        let path = d.path().join(format!("bad{k}.e57"));
+        let mut e = E57Writer::from_file(&path, "{guid}").unwrap();
+        let double = RecordDataType::Double {
+            min: None,
+            max: None,
+        };
+        let proto = [
+            RecordName::CartesianX,
+            RecordName::CartesianY,
+            RecordName::CartesianZ,
+        ]
+        .map(|name| Record {
+            name,
+            data_type: double.clone(),
+        })
+        .to_vec();
+        let mut pc = e.add_pointcloud("{scan}", proto).unwrap();
+        pc.set_name(Some("north".into()));
+        let mut tr = transform(DQuat::IDENTITY, t);
+        tr.rotation = Quaternion {
+            w,
+            x: 0.0,
+            y: 0.0,
+            z: 0.0,
+        };
+        pc.set_transform(Some(tr));
+        for i in 0..10 {
+            let v = f64::from(i);
+            pc.add_point(vec![
+                RecordValue::Double(v),
+                RecordValue::Double(v * 0.5),
+                RecordValue::Double(1.0),
+            ])
+            .unwrap();
+        }
+        pc.finalize().unwrap();
+        e.finalize().unwrap();
+        let err = Cloud::read(&path, None).unwrap_err().to_string();
+        assert!(
+            err.contains(path.to_str().unwrap())
+                && err.contains("scan 0 (`north`)")
+                && err.contains(needle),
+            "{err}"
+        );
+    }
+}

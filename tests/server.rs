@@ -1517,3 +1517,77 @@ fn write_small(dir: &Path) -> PathBuf {
     write_cloud(&p, 500, 9);
     p
 }
+
+/// Issue 51: a tus PATCH past `Upload-Length` is refused (413) and keeps none of its bytes (it
+/// kept its first 16 KB); the upload then takes the right bytes and completes.
+#[test]
+fn issue51_a_patch_past_upload_length_keeps_nothing() {
+    let d = tempfile::tempdir().unwrap();
+    let s = Server::start(d.path(), "", &[]);
+    let c = client();
+    let file = std::fs::read(write_small(d.path())).unwrap();
+    let r = c
+        .post(s.url("/v1/uploads"))
+        .header("upload-length", file.len().to_string())
+        .header("tus-resumable", "1.0.0")
+        .send()
+        .unwrap();
+    assert_eq!(r.status(), StatusCode::CREATED);
+    let loc = s.url(r.headers()["location"].to_str().unwrap());
+    let patch = |offset: usize, body: Vec<u8>| {
+        c.patch(&loc)
+            .header("content-type", "application/offset+octet-stream")
+            .header("upload-offset", offset.to_string())
+            .header("tus-resumable", "1.0.0")
+            .body(body)
+            .send()
+            .unwrap()
+    };
+    let half = file.len() / 2;
+    assert_eq!(
+        patch(0, file[..half].to_vec()).status(),
+        StatusCode::NO_CONTENT
+    );
+    // The rest and 64 KiB more.
+    let mut over = file[half..].to_vec();
+    over.extend(vec![7u8; 64 << 10]);
+    assert_eq!(patch(half, over).status(), StatusCode::PAYLOAD_TOO_LARGE);
+    let r = c
+        .head(&loc)
+        .header("tus-resumable", "1.0.0")
+        .send()
+        .unwrap();
+    assert_eq!(r.headers()["upload-offset"], half.to_string().as_str());
+    assert_eq!(
+        patch(half, file[half..].to_vec()).status(),
+        StatusCode::NO_CONTENT
+    );
+    let (status, _, v) = json_of(c.get(&loc).send().unwrap());
+    assert_eq!(status, StatusCode::OK);
+    assert_eq!(v["size"], file.len());
+    let sha = sha256_hex(&file);
+    assert_eq!(v["sha256"], sha.as_str());
+}
+
+/// Issue 51: a job whose JSON names a key twice is refused (the last one won), naming the key.
+#[test]
+fn issue51_duplicate_json_keys_are_refused() {
+    let d = tempfile::tempdir().unwrap();
+    let s = Server::start(d.path(), "", &[]);
+    let c = client();
+    for body in [
+        r#"{"input": "x", "input": "y"}"#,
+        r#"{"input": "x", "params": {"knn": 8, "knn": 32}}"#,
+    ] {
+        let (status, _, v) = json_of(
+            c.post(s.url("/v1/jobs"))
+                .header("content-type", "application/json")
+                .body(body)
+                .send()
+                .unwrap(),
+        );
+        assert_eq!(status, StatusCode::BAD_REQUEST, "{v}");
+        let detail = v["detail"].as_str().unwrap();
+        assert!(detail.contains("appears twice"), "{detail}");
+    }
+}

@@ -197,3 +197,66 @@ fn issue10_a_killed_runs_temp_space_is_removed_by_the_next_run() {
     assert!(ok.success());
     assert_eq!(entries(&tmp), foreign.map(String::from).to_vec());
 }
+
+/// Issue 51: `kill -9` while the output is written leaves its temporary file
+/// (`.out.xyz.XXXXXX.tmp`) beside it; the next successful run towards the same output removes it,
+/// and never the file of a writer that is still alive (it holds a lock on it).
+#[test]
+fn issue51_a_killed_writers_temporary_output_is_removed_by_the_next_run() {
+    let d = tempfile::tempdir().unwrap();
+    let input = d.path().join("in.ply");
+    cloud(&input, 30_000);
+    let output = d.path().join("out.xyz");
+    // Kill the first run as soon as its temporary output exists.
+    let mut child = qemd()
+        .args(["denoise", input.to_str().unwrap(), "-o"])
+        .arg(&output)
+        .arg("-q")
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let start = Instant::now();
+    let temp = |d: &Path| {
+        entries(d)
+            .into_iter()
+            .filter(|n| n.starts_with(".out.xyz.") && n.ends_with(".tmp"))
+            .collect::<Vec<_>>()
+    };
+    while temp(d.path()).is_empty() {
+        assert!(
+            child.try_wait().unwrap().is_none(),
+            "finished before it was killed"
+        );
+        assert!(
+            start.elapsed() < Duration::from_secs(120),
+            "no temporary output"
+        );
+        std::thread::sleep(Duration::from_millis(2));
+    }
+    child.kill().unwrap();
+    child.wait().unwrap();
+    let left = temp(d.path());
+    assert_eq!(left.len(), 1, "{left:?}");
+    // A live writer's file: created and locked by this process.
+    let live = d.path().join(".out.xyz.live01.tmp");
+    let held = std::fs::File::create(&live).unwrap();
+    held.lock().unwrap();
+    std::thread::sleep(Duration::from_millis(1100));
+    let out = qemd()
+        .args(["denoise", input.to_str().unwrap(), "-o"])
+        .arg(&output)
+        .arg("-q")
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert_eq!(
+        temp(d.path()),
+        [".out.xyz.live01.tmp"],
+        "the killed run's file is gone"
+    );
+    drop(held);
+}

@@ -3,6 +3,7 @@
 use std::fmt;
 
 use super::Info;
+use crate::io::printable;
 
 /// Shortest text that reads back as `v` (coordinates keep every digit they have).
 fn num(v: f64) -> String {
@@ -20,10 +21,11 @@ fn sig(v: f64, digits: usize) -> String {
 
 impl fmt::Display for Info {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        // Names, comments and descriptions come from the file: control characters escaped.
         let row = |f: &mut fmt::Formatter<'_>, name: &str, value: &str| {
-            writeln!(f, "  {name:<12} {value}")
+            writeln!(f, "  {name:<12} {}", printable(value))
         };
-        writeln!(f, "{}", self.path.display())?;
+        writeln!(f, "{}", printable(&self.path.to_string_lossy()))?;
         row(f, "format", &format!("{} ({})", self.kind, self.format))?;
         let declared = match self.declared_points {
             Some(d) if d != self.points => format!(" (the header declares {d})"),

@@ -230,7 +230,8 @@ fn e57_error(path: &Path, e: e57::Error) -> IoError {
     }
 }
 
-/// Rotation and translation of a scan's pose (identity without one).
+/// Rotation and translation of a scan's pose (identity without one; a source refuses poses
+/// that cannot be applied, [`E57Source::new`]).
 fn pose(t: Option<&Transform>) -> (DQuat, DVec3) {
     let Some(t) = t else {
         return (DQuat::IDENTITY, DVec3::ZERO);
@@ -373,6 +374,33 @@ impl E57Source {
                     path: path.to_path_buf(),
                     detail: format!("E57 scan {k} has neither Cartesian nor spherical coordinates"),
                 });
+            }
+            // A pose that cannot be applied is refused, not read as no rotation (issue 51).
+            if let Some(t) = &s.transform {
+                let q = &t.rotation;
+                let q = DQuat::from_xyzw(q.x, q.y, q.z, q.w);
+                let tr = &t.translation;
+                let bad = if !q.is_finite() {
+                    Some("a non-finite rotation quaternion")
+                } else if q.length() < 1e-6 {
+                    Some("a zero rotation quaternion")
+                } else if ![tr.x, tr.y, tr.z].iter().all(|v| v.is_finite()) {
+                    Some("a non-finite translation")
+                } else {
+                    None
+                };
+                if let Some(bad) = bad {
+                    return Err(IoError::invalid(
+                        path,
+                        format!(
+                            "E57 scan {k}{}: its pose has {bad}",
+                            s.name
+                                .as_deref()
+                                .map(|n| format!(" (`{n}`)"))
+                                .unwrap_or_default()
+                        ),
+                    ));
+                }
             }
         }
         let meta = E57Meta {

@@ -283,3 +283,38 @@ impl LineSink {
         self.file.commit()
     }
 }
+
+/// Refuses counts a text file of `file_len` bytes cannot hold (when its length is known):
+/// `points` lines (`noun` in the message) of at least `values` numbers (one character and a separator each) and `faces`
+/// face lines of at least 8 bytes (`3 0 1 2` and its line end). A header that lies about a huge
+/// count fails here, naming the file, before anything is sized from it.
+///
+/// # Errors
+/// [`IoError::Truncated`] naming `path`.
+pub(crate) fn check_text_count(
+    path: &std::path::Path,
+    (points, noun): (u64, &str),
+    values: u64,
+    faces: u64,
+    file_len: Option<u64>,
+) -> Result<(), IoError> {
+    let need = points
+        .saturating_mul(2 * values)
+        .saturating_add(faces.saturating_mul(8))
+        .saturating_sub(1);
+    match file_len {
+        Some(len) if need > len => Err(IoError::truncated(
+            path,
+            format!(
+                "the header declares {points} {noun}{} (at least {need} bytes as text), but the \
+                 file holds {len} bytes",
+                if faces > 0 {
+                    format!(" and {faces} faces")
+                } else {
+                    String::new()
+                }
+            ),
+        )),
+        _ => Ok(()),
+    }
+}

@@ -243,6 +243,29 @@ impl IoError {
     }
 }
 
+/// `s` with its control characters escaped (`\x1b`, `\x07`, `\n`…), for a terminal: a file's
+/// name or header may hold ESC and BEL, which an error or `qemd info` would otherwise send to
+/// the terminal as they are (issue 51). Everything else, Unicode included, stays.
+pub fn printable(s: &str) -> std::borrow::Cow<'_, str> {
+    if !s.chars().any(char::is_control) {
+        return std::borrow::Cow::Borrowed(s);
+    }
+    let mut out = String::with_capacity(s.len() + 8);
+    for c in s.chars() {
+        match c {
+            '\n' => out.push_str("\\n"),
+            '\r' => out.push_str("\\r"),
+            '\t' => out.push_str("\\t"),
+            c if c.is_control() && (c as u32) < 0x100 => {
+                out.push_str(&format!("\\x{:02x}", c as u32));
+            }
+            c if c.is_control() => out.push_str(&format!("\\u{{{:x}}}", c as u32)),
+            c => out.push(c),
+        }
+    }
+    std::borrow::Cow::Owned(out)
+}
+
 /// The supported file formats. Serialised as [`Format::name`] (a job's stored output format,
 /// an upload's format); a [`Format::Bin`] layout does not travel that way (`bin` reads back as
 /// KITTI), which the service never needs: it only takes named formats.

@@ -209,6 +209,7 @@ impl OffSource {
     /// # Errors
     /// As [`OffSource::open`].
     pub fn new(input: Input) -> Result<OffSource, IoError> {
+        let file_len = input.len();
         let owned = input.name().to_path_buf();
         let path = owned.as_path();
         let mut lines = LineReader::new(input);
@@ -272,6 +273,8 @@ impl OffSource {
             },
         };
         meta.edges = edges;
+        // Counts no file of this size can hold are refused here, naming the file (issue 51).
+        crate::io::lines::check_text_count(path, (nv, "vertices"), 3, nf, file_len)?;
         if nf > 0 && nv > u64::from(u32::MAX) + 1 {
             return Err(IoError::Unsupported {
                 path: path.to_path_buf(),
@@ -401,13 +404,23 @@ impl Source for OffSource {
         let mut faces = Faces::new();
         let mut face = Vec::new();
         for (k, l) in raw.split_inclusive(|&c| c == b'\n').enumerate() {
-            if faces.len() as u64 == self.faces {
-                break;
-            }
             let line = base + k as u64 + 1;
             let (content, _) = split_eol(l);
             if is_comment_or_blank(content) {
                 continue;
+            }
+            if faces.len() as u64 == self.faces {
+                // A line past the faces the header counts: the header lies (issue 51: 0 faces
+                // over 722 face lines ran as a point cloud). PLY refuses the same lie.
+                return Err(IoError::header(
+                    path,
+                    format!(
+                        "the header declares {} faces, but line {line} holds more data (`{}`); \
+                         fix the counts line",
+                        self.faces,
+                        show(strip_comment(content))
+                    ),
+                ));
             }
             let mut toks = tokens(strip_comment(content));
             let head = toks.next().unwrap_or_default();

@@ -167,10 +167,16 @@ impl AtomicFile {
     /// not writable; a stream cannot be opened.
     pub fn create(target: &Path) -> Result<AtomicFile, IoError> {
         let dest = match OutputTarget::of(target)? {
-            OutputTarget::Replace(resolved) => Dest::Rename {
-                tmp: BufWriter::with_capacity(BUFFER, temp_next_to(&resolved, target)?),
-                target: resolved,
-            },
+            OutputTarget::Replace(resolved) => {
+                // What killed writers of this target left (issue 51: a `kill -9` during the
+                // stitch left `.o.ply.XXXXXX.tmp` for good); a live writer's file stays. A
+                // directory that cannot be listed fails below, where the temporary file goes.
+                let _ = remove_temps(&resolved, STALE_AFTER);
+                Dest::Rename {
+                    tmp: BufWriter::with_capacity(BUFFER, temp_next_to(&resolved, target)?),
+                    target: resolved,
+                }
+            }
             t => Dest::Direct(BufWriter::with_capacity(BUFFER, open_stream(&t, target)?)),
         };
         Ok(AtomicFile {
@@ -340,20 +346,35 @@ fn temp_next_to(resolved: &Path, shown: &Path) -> Result<tempfile::NamedTempFile
         .file_name()
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_default();
-    tempfile::Builder::new()
+    let tmp = tempfile::Builder::new()
         .prefix(&format!(".{name}."))
         .suffix(".tmp")
         .tempfile_in(dir)
-        .map_err(|e| IoError::io(shown, e))
+        .map_err(|e| IoError::io(shown, e))?;
+    // Held while the file lives (the process's end releases it, however it ends): it tells
+    // [`remove_stale_temps`] that a writer is alive. A file system without locks leaves the
+    // file unlocked, and then no other writer ever removes it.
+    let _ = tmp.as_file().try_lock();
+    Ok(tmp)
 }
 
+/// How old a temporary file must be before [`AtomicFile::create`] removes it: its writer locks
+/// it right after creating it, and must not lose it in between.
+const STALE_AFTER: std::time::Duration = std::time::Duration::from_secs(1);
+
 /// Removes the temporary files that writers of `target` ([`AtomicFile::create`]) left behind
-/// when they were killed; returns how many. Call it only where no writer of `target` can be
-/// running (under the lock that guards it): a live writer's file would go too.
+/// when they were killed; returns how many. A live writer holds a lock on its file, which is
+/// then kept (as is one whose lock cannot be tested). [`AtomicFile::create`] does this itself,
+/// for files older than a second.
 ///
 /// # Errors
 /// The directory cannot be listed or a file removed.
 pub fn remove_stale_temps(target: &Path) -> Result<usize, IoError> {
+    remove_temps(target, std::time::Duration::ZERO)
+}
+
+/// [`remove_stale_temps`] for files at least `min_age` old.
+fn remove_temps(target: &Path, min_age: std::time::Duration) -> Result<usize, IoError> {
     let dir = match target.parent() {
         Some(d) if !d.as_os_str().is_empty() => d,
         _ => Path::new("."),
@@ -366,12 +387,27 @@ pub fn remove_stale_temps(target: &Path) -> Result<usize, IoError> {
     for entry in std::fs::read_dir(dir).map_err(|e| IoError::io(dir, e))? {
         let entry = entry.map_err(|e| IoError::io(dir, e))?;
         let n = entry.file_name().to_string_lossy().into_owned();
-        if n.starts_with(&prefix) && n.ends_with(".tmp") && entry.path().is_file() {
+        if n.starts_with(&prefix)
+            && n.ends_with(".tmp")
+            && entry.path().is_file()
+            && stale(&entry, min_age)
+        {
             std::fs::remove_file(entry.path()).map_err(|e| IoError::io(&entry.path(), e))?;
             removed += 1;
         }
     }
     Ok(removed)
+}
+
+/// True when no live writer holds the temporary file `entry`: it is at least `min_age` old and
+/// its lock can be taken.
+fn stale(entry: &std::fs::DirEntry, min_age: std::time::Duration) -> bool {
+    let old = min_age.is_zero()
+        || entry
+            .metadata()
+            .and_then(|m| m.modified())
+            .is_ok_and(|t| t.elapsed().is_ok_and(|age| age >= min_age));
+    old && std::fs::File::open(entry.path()).is_ok_and(|f| f.try_lock().is_ok())
 }
 
 /// Opens a stream target for writing (never creating, truncating or renaming anything).

@@ -271,6 +271,7 @@ impl TextSource {
     /// # Errors
     /// As [`TextSource::open`].
     pub fn new(input: Input, flavor: TextFlavor) -> Result<TextSource, IoError> {
+        let file_len = input.len();
         let owned = input.name().to_path_buf();
         let path = owned.as_path();
         let mut lines = LineReader::new(input);
@@ -301,12 +302,16 @@ impl TextSource {
             }
             if flavor == TextFlavor::Pts && declared.is_none() {
                 let t = trim(content);
-                declared = Some(parse_u64(t).ok_or_else(|| {
+                let n = parse_u64(t).ok_or_else(|| {
                     IoError::header(
                         path,
                         format!("line {line}: expected the point count, found `{}`", show(t)),
                     )
-                })?);
+                })?;
+                // A count no file of this size can hold is refused here, naming the file (issue
+                // 51: the tiled path's temporary-space check named the temporary directory).
+                crate::io::lines::check_text_count(path, (n, "points"), 3, 0, file_len)?;
+                declared = Some(n);
                 continue;
             }
             // The first point fixes the separator, the column count and the line terminator.

@@ -349,7 +349,8 @@ impl Jobs {
     ///
     /// # Errors
     /// [`JobsError::NoSuch`], [`JobsError::WrongState`] (offset mismatch, already complete, a
-    /// concurrent PATCH), [`JobsError::OverLimit`] beyond the declared length,
+    /// concurrent PATCH), [`JobsError::OverLimit`] beyond the declared length (the PATCH then
+    /// keeps none of its bytes),
     /// [`JobsError::BodyRead`] when the body breaks off, and on completion the errors of
     /// validation (saying that the upload is kept and how to name its format).
     pub async fn append<S, B, E>(
@@ -420,11 +421,18 @@ impl Jobs {
                 .map_err(|e| JobsError::io("write an upload", e))?;
             size += bytes.len() as u64;
         }
-        // Whatever arrived stays: the client resumes from the offset HEAD reports.
+        // Whatever arrived stays: the client resumes from the offset HEAD reports. A PATCH past
+        // Upload-Length keeps none of its bytes (issue 51: it kept its first 16 KB): the
+        // upload is as it was before it.
         out.flush()
             .await
             .map_err(|e| JobsError::io("write an upload", e))?;
         let file = out.into_inner();
+        if matches!(broken, Some(JobsError::OverLimit { .. })) {
+            file.set_len(have)
+                .await
+                .map_err(|e| JobsError::io("truncate an upload", e))?;
+        }
         file.sync_data()
             .await
             .map_err(|e| JobsError::io("sync an upload", e))?;

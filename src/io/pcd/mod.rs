@@ -337,6 +337,15 @@ impl PcdSource {
         let mut columns = None;
         match kind {
             PcdData::Binary => {
+                // An ascii body under `DATA binary` read as records is a garbage cloud (issue 51).
+                let head = reader.fill_buf().map_err(|e| IoError::io(path, e))?;
+                if looks_like_ascii_rows(head) {
+                    return Err(IoError::header(
+                        path,
+                        "DATA binary, but the point data is text (ascii rows); the header should \
+                         say DATA ascii",
+                    ));
+                }
                 let need = points.saturating_mul(rl);
                 if let Some(avail) = avail
                     && need > avail
@@ -611,6 +620,23 @@ impl Source for PcdSource {
         self.reader
             .read_to_end(&mut tail)
             .map_err(|e| IoError::io(&self.info.path, e))?;
+        // What follows the points of an ascii body may be blank lines and comments; a row is a
+        // point the header does not count (issue 51: it was kept aside, never denoised).
+        if self.kind == PcdData::Ascii
+            && let Some(row) = tail
+                .split(|&b| b == b'\n')
+                .map(|l| l.trim_ascii())
+                .find(|l| !l.is_empty() && !l.starts_with(b"#"))
+        {
+            let row = String::from_utf8_lossy(&row[..row.len().min(60)]).into_owned();
+            return Err(IoError::header(
+                &self.info.path,
+                format!(
+                    "POINTS says {}, but more rows follow (`{row}`); fix POINTS (and WIDTH)",
+                    self.total
+                ),
+            ));
+        }
         Ok(Extras {
             faces: None,
             trailer: Trailer::Pcd(PcdTrailer {
@@ -620,6 +646,22 @@ impl Source for PcdSource {
             }),
         })
     }
+}
+
+/// True when `head`, the start of a body announced as binary, reads as ascii PCD rows: at least
+/// 32 bytes, all of them digits, signs, dots, exponents, spaces and line ends, with a space and a
+/// line end among them (records of floats are never all of that).
+fn looks_like_ascii_rows(head: &[u8]) -> bool {
+    head.len() >= 32
+        && head.contains(&b'\n')
+        && head.contains(&b' ')
+        && head.iter().all(|&b| {
+            b.is_ascii_digit()
+                || matches!(
+                    b,
+                    b' ' | b'\t' | b'\r' | b'\n' | b'.' | b'-' | b'+' | b'e' | b'E'
+                )
+        })
 }
 
 // ---------------------------------------------------------------------------------------------
