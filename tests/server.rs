@@ -802,6 +802,16 @@ fn tenants_see_only_their_own_uploads_and_jobs() {
         std::thread::sleep(Duration::from_millis(50));
     }
 
+    // The list of uploads is the tenant's (issue 51: `GET /v1/uploads`).
+    for (auth, total) in [(alice, 1), (bob, 0)] {
+        let (_, _, v) = json_of(
+            c.get(s.url("/v1/uploads"))
+                .header("authorization", auth)
+                .send()
+                .unwrap(),
+        );
+        assert_eq!(v["total"], total, "{auth}: {v}");
+    }
     for path in [
         format!("/v1/uploads/{uid}"),
         format!("/v1/jobs/{jid}"),
@@ -1589,5 +1599,121 @@ fn issue51_duplicate_json_keys_are_refused() {
         assert_eq!(status, StatusCode::BAD_REQUEST, "{v}");
         let detail = v["detail"].as_str().unwrap();
         assert!(detail.contains("appears twice"), "{detail}");
+    }
+}
+
+/// Issue 51: `GET /v1/uploads` lists the uploads with their file names (the page forgot them
+/// after a reload), newest first and paginated; a job names its input's file, and its result
+/// downloads under the input's name (`scan.denoised.ply`), not the job id. (Tenant scoping of
+/// the list: `tenants_see_only_their_own_uploads_and_jobs`.)
+#[test]
+fn issue51_uploads_are_listed_with_names_and_results_download_under_them() {
+    let d = tempfile::tempdir().unwrap();
+    let s = Server::start(d.path(), "", &[]);
+    let c = client();
+    let small = std::fs::read(write_small(d.path())).unwrap();
+    let mut ids = Vec::new();
+    for name in ["first%20scan.ply", "zweiter-scan.ply", "third.ply"] {
+        let r = c.post(s.url(&format!("/v1/uploads?filename={name}")));
+        let (status, _, v) = json_of(
+            r.header("content-type", OCTET)
+                .body(small.clone())
+                .send()
+                .unwrap(),
+        );
+        assert_eq!(status, StatusCode::CREATED, "{v}");
+        ids.push(v["id"].as_str().unwrap().to_string());
+        // Distinct creation times, so that "newest first" is one order.
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    let (status, _, v) = json_of(c.get(s.url("/v1/uploads?limit=2")).send().unwrap());
+    assert_eq!((status, &v["total"]), (StatusCode::OK, &json!(3)), "{v}");
+    let names: Vec<&Value> = v["uploads"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|u| &u["filename"])
+        .collect();
+    assert_eq!(names, [&json!("third.ply"), &json!("zweiter-scan.ply")]);
+    let next = v["links"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|l| l["rel"] == "next")
+        .unwrap();
+    let (_, _, rest) = json_of(c.get(s.url(next["href"].as_str().unwrap())).send().unwrap());
+    assert_eq!(rest["uploads"][0]["filename"], "first scan.ply", "{rest}");
+    // A job on the first: its view names the file, the download is named after it.
+    let (job, _) = run_job(&c, &s, json!({"input": ids[0]}));
+    assert_eq!(job["input_filename"], "first scan.ply");
+    assert_eq!(
+        job["result"]["filename"], "first scan.denoised.ply",
+        "{job}"
+    );
+    let r = c
+        .head(s.url(job["result"]["href"].as_str().unwrap()))
+        .send()
+        .unwrap();
+    assert_eq!(
+        r.headers()["content-disposition"],
+        "attachment; filename=\"first scan.denoised.ply\""
+    );
+}
+
+/// Issue 51: the synchronous path keeps the body's compression (a LAZ body sent as
+/// `application/vnd.las` came back as uncompressed LAS), and a COPC upload is COPC: its job
+/// writes COPC, or plain LAZ without the input's COPC layout when asked.
+#[test]
+fn issue51_sync_keeps_laz_and_copc_uploads_stay_copc() {
+    let d = tempfile::tempdir().unwrap();
+    let s = Server::start(d.path(), "", &[]);
+    let c = client();
+    let ply = write_small(d.path());
+    let cloud = Cloud::read(&ply, None).unwrap();
+    let laz = d.path().join("in.laz");
+    cloud.write(&laz, None).unwrap();
+    let r = c
+        .post(s.url("/v1/denoise"))
+        .header("content-type", "application/vnd.las")
+        .body(std::fs::read(&laz).unwrap())
+        .send()
+        .unwrap();
+    assert_eq!(r.status(), StatusCode::OK);
+    assert_eq!(r.headers()["content-type"], "application/vnd.laszip");
+    let body = r.bytes().unwrap();
+    let out = d.path().join("sync.laz");
+    std::fs::write(&out, &body).unwrap();
+    let info = qem_denoise::info::inspect(&out, None, None).unwrap();
+    assert_eq!(info.header["compressed"], true, "the answer is LAZ");
+    // A COPC upload, no name given: sniffed as COPC.
+    let copc = d.path().join("in.copc.laz");
+    Cloud::read(&laz, None).unwrap().write(&copc, None).unwrap();
+    let (status, _, up) = json_of(
+        c.post(s.url("/v1/uploads"))
+            .header("content-type", OCTET)
+            .body(std::fs::read(&copc).unwrap())
+            .send()
+            .unwrap(),
+    );
+    assert_eq!(status, StatusCode::CREATED, "{up}");
+    assert_eq!(up["format"], "copc.laz");
+    for (output, copc_out) in [(None, true), (Some("laz"), false)] {
+        let mut req = json!({"input": up["id"]});
+        if let Some(o) = output {
+            req["output_format"] = json!(o);
+        }
+        let (view, bytes) = run_job(&c, &s, req);
+        let f = d.path().join("job.laz");
+        std::fs::write(&f, &bytes).unwrap();
+        let info =
+            qem_denoise::info::inspect(&f, Some(qem_denoise::io::Format::Laz), None).unwrap();
+        assert_eq!(info.header["copc"], copc_out, "{view}");
+        let vlrs: Vec<&str> = info.header["vlrs"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v["user_id"].as_str().unwrap())
+            .collect();
+        assert_eq!(vlrs.contains(&"copc"), copc_out, "{vlrs:?}");
     }
 }

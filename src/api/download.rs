@@ -84,6 +84,29 @@ pub(crate) fn matches_etag(value: &str, etag: &str) -> bool {
         .any(|t| t == "*" || t == etag)
 }
 
+/// `attachment` named `name` (RFC 6266): an ASCII `filename` for every client and, when the
+/// name is not plain ASCII, `filename*` with its UTF-8 bytes percent-encoded (RFC 8187).
+fn disposition(name: &str) -> String {
+    let ascii: String = name
+        .chars()
+        .map(|c| match c {
+            ' '..='~' if c != '"' && c != '\\' => c,
+            _ => '_',
+        })
+        .collect();
+    if ascii == name {
+        return format!("attachment; filename=\"{name}\"");
+    }
+    let encoded: String = name
+        .bytes()
+        .map(|b| match b {
+            b'A'..=b'Z' | b'a'..=b'z' | b'0'..=b'9' | b'.' | b'-' | b'_' => (b as char).to_string(),
+            b => format!("%{b:02X}"),
+        })
+        .collect();
+    format!("attachment; filename=\"{ascii}\"; filename*=UTF-8''{encoded}")
+}
+
 /// `GET` and `HEAD /v1/jobs/{id}/result`.
 pub async fn result(
     State(state): State<AppState>,
@@ -111,10 +134,7 @@ pub async fn result(
         return Ok((StatusCode::NOT_MODIFIED, common).into_response());
     }
     put(header::CONTENT_TYPE, media_type_of(r.format).into());
-    put(
-        header::CONTENT_DISPOSITION,
-        format!("attachment; filename=\"{id}.{}\"", r.format),
-    );
+    put(header::CONTENT_DISPOSITION, disposition(&r.filename));
     let range_applies = text(header::IF_RANGE).is_none_or(|v| v.trim() == etag);
     let range = match text(header::RANGE) {
         Some(v) if range_applies => parse_range(v, r.size),

@@ -100,7 +100,13 @@ pub(crate) fn view(info: &JobInfo) -> Value {
         (Status::Successful, Some(size), Some(sha)) => {
             let rhref = format!("{href}/result");
             links.push(json!({"rel": "results", "href": rhref}));
-            json!({"href": rhref, "size": size, "sha256": sha, "format": r.spec.output_format})
+            json!({
+                "href": rhref,
+                "size": size,
+                "sha256": sha,
+                "format": r.spec.output_format,
+                "filename": r.spec.result_filename(&r.id),
+            })
         }
         _ => Value::Null,
     };
@@ -127,6 +133,7 @@ pub(crate) fn view(info: &JobInfo) -> Value {
         "processID": "denoise",
         "status": r.status.as_str(),
         "input": r.upload,
+        "input_filename": r.spec.input_filename,
         "params": r.spec.denoise.params,
         "outliers": r.spec.denoise.outliers,
         "outlier_alpha": r.spec.denoise.outlier_alpha,
@@ -292,9 +299,6 @@ struct ListQuery {
     offset: Option<u64>,
 }
 
-/// Default and largest page size of `GET /v1/jobs`.
-const PAGE: (u64, u64) = (50, 1000);
-
 /// `GET /v1/jobs?status=&limit=&offset=`.
 pub async fn list(
     State(state): State<AppState>,
@@ -311,34 +315,17 @@ pub async fn list(
             )
         })?),
     };
-    let limit = q.limit.unwrap_or(PAGE.0);
-    if !(1..=PAGE.1).contains(&limit) {
-        return Err(ApiError::invalid("limit", "must be between 1 and 1000"));
-    }
-    let offset = q.offset.unwrap_or(0);
+    let (limit, offset) = super::page_of(q.limit, q.offset)?;
     let (rows, total) = state.jobs.list(&tenant, status, limit, offset).await?;
-    let page = |off: u64| {
-        let mut href = format!("/v1/jobs?limit={limit}&offset={off}");
-        if let Some(s) = status {
-            href.push_str(&format!("&status={}", s.as_str()));
-        }
-        href
-    };
-    let mut links = vec![json!({"rel": "self", "href": page(offset)})];
-    if offset + (rows.len() as u64) < total {
-        links.push(json!({"rel": "next", "href": page(offset + rows.len() as u64)}));
-    }
-    if offset > 0 {
-        links.push(json!({"rel": "prev", "href": page(offset.saturating_sub(limit))}));
-    }
-    Ok(axum::Json(json!({
-        "jobs": rows.iter().map(view).collect::<Vec<_>>(),
-        "total": total,
-        "limit": limit,
-        "offset": offset,
-        "links": links,
-    }))
-    .into_response())
+    let filter = status.map_or(String::new(), |s| format!("&status={}", s.as_str()));
+    let jobs = rows.iter().map(view).collect();
+    Ok(super::page_response(
+        ("/v1/jobs", &filter),
+        "jobs",
+        jobs,
+        (limit, offset),
+        total,
+    ))
 }
 
 #[cfg(test)]

@@ -111,7 +111,9 @@ pub fn routes() -> Vec<(&'static str, bool, MethodRouter<AppState>)> {
         (
             "/v1/uploads",
             true,
-            post(uploads::create).options(uploads::options),
+            post(uploads::create)
+                .get(uploads::list)
+                .options(uploads::options),
         ),
         (
             "/v1/uploads/{id}",
@@ -248,6 +250,58 @@ pub(crate) fn media_type_of(format: Format) -> &'static str {
         Format::Xyz | Format::Pts | Format::Off => "text/plain",
         _ => "application/octet-stream",
     }
+}
+
+/// Default and largest page size of the lists (`GET /v1/jobs`, `GET /v1/uploads`).
+const PAGE: (u64, u64) = (50, 1000);
+
+/// The query of a list without filters (`GET /v1/uploads`).
+#[derive(Debug, Default, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub(crate) struct PageQuery {
+    pub limit: Option<u64>,
+    pub offset: Option<u64>,
+}
+
+/// A list's `limit` (default 50, at most 1000) and `offset` (default 0).
+///
+/// # Errors
+/// [`ApiError::Unprocessable`] naming `limit`.
+pub(crate) fn page_of(limit: Option<u64>, offset: Option<u64>) -> Result<(u64, u64), ApiError> {
+    let limit = limit.unwrap_or(PAGE.0);
+    if !(1..=PAGE.1).contains(&limit) {
+        return Err(ApiError::invalid("limit", "must be between 1 and 1000"));
+    }
+    Ok((limit, offset.unwrap_or(0)))
+}
+
+/// A page of a list as JSON: the `items` under `key`, `total`, `limit`, `offset`, and the
+/// `self`, `next` and `prev` links at `base` (`filter`: more query parameters, each starting `&`).
+pub(crate) fn page_response(
+    (base, filter): (&str, &str),
+    key: &str,
+    items: Vec<serde_json::Value>,
+    (limit, offset): (u64, u64),
+    total: u64,
+) -> axum::response::Response {
+    use axum::response::IntoResponse;
+    let shown = items.len() as u64;
+    let page = |off: u64| format!("{base}?limit={limit}&offset={off}{filter}");
+    let mut links = vec![serde_json::json!({"rel": "self", "href": page(offset)})];
+    if offset + shown < total {
+        links.push(serde_json::json!({"rel": "next", "href": page(offset + shown)}));
+    }
+    if offset > 0 {
+        links.push(serde_json::json!({"rel": "prev", "href": page(offset.saturating_sub(limit))}));
+    }
+    axum::Json(serde_json::json!({
+        key: items,
+        "total": total,
+        "limit": limit,
+        "offset": offset,
+        "links": links,
+    }))
+    .into_response()
 }
 
 /// Milliseconds since the Unix epoch, now.

@@ -91,6 +91,11 @@ pub async fn denoise(
         Some(name) => Format::from_name(&name)
             .ok_or_else(|| ApiError::UnsupportedMediaType(Format::unknown(&name)))?,
         None => match from_type {
+            // LAS, LAZ and COPC share the media types: the header says which the body is, and
+            // the answer keeps it (issue 51: a LAZ body sent as vnd.las came back as LAS).
+            Some(f) if f.is_las() => sniff(&bytes[..bytes.len().min(SNIFF_LEN)])
+                .filter(|s| s.is_las())
+                .unwrap_or(f),
             Some(f) => f,
             None => sniff(&bytes[..bytes.len().min(SNIFF_LEN)]).ok_or_else(|| {
                 ApiError::UnsupportedMediaType(

@@ -263,6 +263,26 @@ pub async fn status(
     ))
 }
 
+/// `GET /v1/uploads?limit=&offset=`: the tenant's uploads, newest first, with their file names
+/// (a reloaded page lists them again).
+pub async fn list(
+    State(state): State<AppState>,
+    Extension(Tenant(tenant)): Extension<Tenant>,
+    RawQuery(query): RawQuery,
+) -> Result<Response, ApiError> {
+    let q: super::PageQuery = parse_query(query)?;
+    let (limit, offset) = super::page_of(q.limit, q.offset)?;
+    let (rows, total) = state.jobs.list_uploads(&tenant, limit, offset).await?;
+    let uploads = rows.iter().map(view).collect();
+    Ok(super::page_response(
+        ("/v1/uploads", ""),
+        "uploads",
+        uploads,
+        (limit, offset),
+        total,
+    ))
+}
+
 /// `PATCH /v1/uploads/{id}`: appends a chunk.
 pub async fn patch(
     State(state): State<AppState>,

@@ -210,7 +210,7 @@ pub fn inspect(
         bounds: tally.bounds(),
         scale: las_meta(&info).map(|m| m.scale().to_array()),
         offset: las_meta(&info).map(|m| m.offset().to_array()),
-        crs: crs(&info, &evlrs),
+        crs: Crs::of_file(&info.meta, Some(&extras.trailer)),
         spacing,
         classes: tally.classes(&info),
         header: header(&info, &evlrs),
@@ -387,15 +387,6 @@ fn extra_fields(info: &SourceInfo) -> Vec<String> {
             .filter(|(i, _)| !schema.xyz.contains(i))
             .map(|(_, f)| f.name.clone())
             .collect(),
-    }
-}
-
-/// The CRS the header (and a LAS file's EVLRs) declare.
-fn crs(info: &SourceInfo, evlrs: &[&io::las::LasVlr]) -> Option<Crs> {
-    match &info.meta {
-        Meta::Las(m) => Crs::of(m.vlrs().iter().chain(evlrs.iter().copied())),
-        Meta::E57(m) => m.coordinate_metadata().and_then(Crs::of_e57),
-        _ => None,
     }
 }
 

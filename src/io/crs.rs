@@ -134,6 +134,22 @@ impl Crs {
         record(34735).and_then(|keys| Crs::from_geotiff(keys, record(34736), record(34737)))
     }
 
+    /// The CRS a file declares: a LAS file's (E)VLRs (`meta` and, once read, the `trailer`'s
+    /// EVLRs), an E57 file's `coordinateMetadata`; `None` for formats that declare none.
+    pub fn of_file(meta: &super::Meta, trailer: Option<&super::Trailer>) -> Option<Crs> {
+        match meta {
+            super::Meta::Las(m) => {
+                let evlrs: Vec<&LasVlr> = match trailer {
+                    Some(super::Trailer::Las(t)) => t.evlrs().collect(),
+                    _ => Vec::new(),
+                };
+                Crs::of(m.vlrs().iter().chain(evlrs))
+            }
+            super::Meta::E57(m) => m.coordinate_metadata().and_then(Crs::of_e57),
+            _ => None,
+        }
+    }
+
     /// The CRS an E57 file's `coordinateMetadata` states: WKT is read as such, any other text
     /// is kept as the system's name.
     pub fn of_e57(metadata: &str) -> Option<Crs> {

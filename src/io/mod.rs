@@ -766,9 +766,13 @@ pub fn create_with(
     let format = match format {
         Some(f) => f,
         None => Format::from_path(path).or_else(|e| {
-            // A stream (standard output, a FIFO) without an extension gets the input's format.
+            // A stream (standard output, a FIFO) without an extension gets the input's format;
+            // COPC, which reorganises a file it can reopen, goes to a stream as the LAZ it is.
             if target.is_stream() {
-                Ok(like.format)
+                Ok(match like.format {
+                    Format::Copc => Format::Laz,
+                    f => f,
+                })
             } else {
                 Err(e)
             }

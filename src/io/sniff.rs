@@ -8,7 +8,7 @@
 //! |---|---|
 //! | `ply` line | `ply` |
 //! | `ASTM-E57` signature | `e57` |
-//! | `LASF` signature, compression bits of the point format clear / set | `las` / `laz` |
+//! | `LASF` signature, compression bits of the point format clear / set | `las` / `laz` (`copc.laz` when the first VLR is COPC's info VLR) |
 //! | first keyword line of a PCD header (`VERSION`, `FIELDS`, …), or `# .PCD`; for a binary body, the header lines up to `DATA binary…` (after any comments) | `pcd` |
 //! | first token `OFF`, `COFF`, `NOFF`, `CNOFF`, `STOFF` … | `off` |
 //! | lines starting `v `, `f `, `vn `, `o `, `g `… (with at least one `v`) | `obj` |
@@ -44,8 +44,25 @@ fn pcd_header(head: &[u8]) -> Option<&str> {
     None
 }
 
-/// The format of content starting with `head` (PLY, LAS, LAZ, E57, PCD in any of its three
-/// encodings, OFF, OBJ, PTS, XYZ), or `None`. A COPC file sniffs as the LAZ file it is.
+/// True when the LAZ content starting with `head` is COPC: its first VLR, right after the public
+/// header, is the COPC info VLR (user `copc`, record 1), as COPC 1.0 requires.
+fn is_copc(head: &[u8]) -> bool {
+    let Some(size) = head
+        .get(94..96)
+        .map(|b| usize::from(u16::from_le_bytes([b[0], b[1]])))
+    else {
+        return false;
+    };
+    // A VLR header: reserved (2 bytes), user id (16, NUL-padded), record id (2).
+    let user = head.get(size + 2..size + 18);
+    let record = head.get(size + 18..size + 20);
+    user.is_some_and(|u| u.starts_with(b"copc\0")) && record == Some(&[1, 0][..])
+}
+
+/// The format of content starting with `head` (PLY, LAS, LAZ, COPC, E57, PCD in any of its
+/// three encodings, OFF, OBJ, PTS, XYZ), or `None`. A COPC file (its first VLR is the COPC info
+/// VLR) sniffs as COPC, so a service upload is written back as COPC, not as a LAZ carrying a
+/// stale COPC layout (issue 51).
 pub fn sniff(head: &[u8]) -> Option<Format> {
     if head.starts_with(b"ply\n") || head.starts_with(b"ply\r\n") {
         return Some(Format::Ply);
@@ -56,7 +73,13 @@ pub fn sniff(head: &[u8]) -> Option<Format> {
     if head.starts_with(b"LASF") {
         // Bit 7 (LASzip) or bit 6 (old LASzip) of the point data record format marks LAZ.
         let compressed = head.get(LAS_FORMAT_OFFSET).is_some_and(|f| f & 0xC0 != 0);
-        return Some(if compressed { Format::Laz } else { Format::Las });
+        return Some(if !compressed {
+            Format::Las
+        } else if is_copc(head) {
+            Format::Copc
+        } else {
+            Format::Laz
+        });
     }
     // A binary PCD body follows its text header: judge the header alone, the lines before the
     // body (the bytes after `DATA binary` are not text).

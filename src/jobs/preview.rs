@@ -135,6 +135,11 @@ pub struct PreviewMeta {
     pub class: bool,
     /// Displacement summary (paired previews).
     pub displacement: Option<DisplacementStats>,
+    /// The unit of lengths (coordinates and displacements): `m`, `ft` or `US ft` when the input's
+    /// CRS (LAS, COPC, E57) says it, `°` for a geographic one; `None`: the file does not say, and
+    /// lengths are in the input's own units.
+    #[serde(default)]
+    pub units: Option<String>,
     /// The sampling rule, in words.
     pub selection: String,
     /// The bound it was built with (`preview_points`).
@@ -159,6 +164,8 @@ struct Side {
     intensity: Option<Vec<f32>>,
     class: Option<Vec<u8>>,
     faces: Option<Faces>,
+    /// The unit of the coordinates, when the file's CRS says it.
+    unit: Option<crate::io::crs::LinearUnit>,
 }
 
 /// Where a scalar field is in a schema, and how to read it.
@@ -238,6 +245,8 @@ fn read_side(
         }
     }
     let extras = source.finish().map_err(io)?;
+    side.unit =
+        crate::io::crs::Crs::of_file(&info.meta, Some(&extras.trailer)).and_then(|c| c.unit);
     if chosen.is_none() {
         side.faces = extras.faces;
     }
@@ -471,6 +480,7 @@ pub fn build(
         intensity: before.intensity.is_some() && after.intensity.is_some(),
         class: before.class.is_some() && after.class.is_some(),
         displacement: stats,
+        units: before.unit.map(|u| u.symbol().to_string()),
         selection: if whole {
             "every point".into()
         } else {

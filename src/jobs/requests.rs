@@ -76,6 +76,8 @@ pub struct ResultFile {
     pub sha256: String,
     /// Format.
     pub format: Format,
+    /// The name it downloads under ([`super::store::JobSpec::result_filename`]).
+    pub filename: String,
     /// When the job finished, ms since the Unix epoch.
     pub finished_ms: i64,
 }

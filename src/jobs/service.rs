@@ -404,6 +404,7 @@ impl Jobs {
                 memory_budget: settings.memory_budget,
                 tile_points,
                 executor,
+                input_filename: upload.filename.clone(),
             },
             created_ms: now_ms(),
             started_ms: None,
@@ -502,6 +503,20 @@ impl Jobs {
         ))
     }
 
+    /// A page of `tenant`'s uploads, newest first, and how many it has.
+    ///
+    /// # Errors
+    /// Store failures.
+    pub async fn list_uploads(
+        &self,
+        tenant: &str,
+        limit: u64,
+        offset: u64,
+    ) -> Result<(Vec<super::Upload>, u64), JobsError> {
+        let t = tenant.to_string();
+        self.db(move |s| s.list_uploads(&t, limit, offset)).await
+    }
+
     /// Dismisses job `id` of `tenant`: a queued job leaves the queue, a running one is cancelled
     /// (waiting up to a second for it to stop), and its files are removed.
     ///
@@ -582,6 +597,7 @@ impl Jobs {
                 size,
                 sha256,
                 format: row.spec.output_format,
+                filename: row.spec.result_filename(id),
                 finished_ms: row.finished_ms.unwrap_or(row.created_ms),
             }),
             _ => Err(JobsError::Internal(format!(

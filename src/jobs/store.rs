@@ -115,6 +115,37 @@ pub struct JobSpec {
     /// Where it runs (chosen at submission; rows of earlier versions are local).
     #[serde(default)]
     pub executor: Executor,
+    /// The input upload's file name, when the client gave one (the result downloads as
+    /// `<stem>.denoised.<ext>`; rows of earlier versions have none).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub input_filename: Option<String>,
+}
+
+impl JobSpec {
+    /// The name the result downloads under: the input's file name with `.denoised` and the
+    /// output format's extension in place of its own (`scan.laz` → `scan.denoised.laz`,
+    /// `site.copc.laz` → `site.denoised.copc.laz`), else `<id>.<ext>`.
+    pub fn result_filename(&self, id: &str) -> String {
+        let ext = self.output_format.name();
+        let Some(name) = self.input_filename.as_deref() else {
+            return format!("{id}.{ext}");
+        };
+        // The last path component (a browser may send a path), without its format extension.
+        let name = name.rsplit(['/', '\\']).next().unwrap_or(name);
+        let lower = name.to_ascii_lowercase();
+        let stem_len = [".copc.laz", ".pcd.bin"]
+            .iter()
+            .find(|e| lower.ends_with(*e))
+            .map(|e| name.len() - e.len())
+            .or_else(|| name.rfind('.'))
+            .unwrap_or(name.len());
+        let stem = &name[..stem_len];
+        if stem.is_empty() {
+            format!("{id}.{ext}")
+        } else {
+            format!("{stem}.denoised.{ext}")
+        }
+    }
 }
 
 /// A job row.
@@ -181,6 +212,7 @@ CREATE TABLE IF NOT EXISTS jobs (
 CREATE INDEX IF NOT EXISTS jobs_by_tenant ON jobs (tenant, seq);
 CREATE INDEX IF NOT EXISTS jobs_by_status ON jobs (status, seq);
 CREATE INDEX IF NOT EXISTS jobs_by_upload ON jobs (upload);
+CREATE INDEX IF NOT EXISTS uploads_by_tenant ON uploads (tenant, created_ms);
 ";
 
 /// Columns added after the first schema: (column, type), added to an older database at open.
@@ -399,6 +431,32 @@ impl Store {
             ],
         )?;
         Ok(())
+    }
+
+    /// A page of `tenant`'s uploads, newest first, and how many it has.
+    ///
+    /// # Errors
+    /// SQLite failures.
+    pub fn list_uploads(
+        &self,
+        tenant: &str,
+        limit: u64,
+        offset: u64,
+    ) -> Result<(Vec<Upload>, u64), JobsError> {
+        let conn = self.conn();
+        let mut st = conn.prepare(&format!(
+            "SELECT {UPLOAD_COLUMNS} FROM uploads WHERE tenant = ?1 \
+             ORDER BY created_ms DESC, id LIMIT ?2 OFFSET ?3"
+        ))?;
+        let rows = st
+            .query_map(params![tenant, to_i64(limit), to_i64(offset)], upload_from)?
+            .collect::<rusqlite::Result<Vec<Upload>>>()?;
+        let total: i64 = conn.query_row(
+            "SELECT COUNT(*) FROM uploads WHERE tenant = ?1",
+            params![tenant],
+            |r| r.get(0),
+        )?;
+        Ok((rows, opt_u64(Some(total)).unwrap_or(0)))
     }
 
     /// The upload `id`, if it exists (and belongs to `tenant` when given).
@@ -689,6 +747,26 @@ impl Store {
 mod tests {
     use super::*;
 
+    #[test]
+    fn issue51_results_download_under_the_inputs_name() {
+        let mut spec = job("j1", "t").spec;
+        let name = |spec: &JobSpec| spec.result_filename("j1");
+        assert_eq!(name(&spec), "j1.ply");
+        for (input, format, want) in [
+            ("scan.laz", Format::Laz, "scan.denoised.laz"),
+            ("scan.laz", Format::Las, "scan.denoised.las"),
+            ("site.copc.laz", Format::Copc, "site.denoised.copc.laz"),
+            ("sweep.pcd.bin", Format::Nuscenes, "sweep.denoised.pcd.bin"),
+            ("C:\\data\\bunny.ply", Format::Ply, "bunny.denoised.ply"),
+            ("dir/no-extension", Format::Xyz, "no-extension.denoised.xyz"),
+            (".ply", Format::Ply, "j1.ply"),
+        ] {
+            spec.input_filename = Some(input.into());
+            spec.output_format = format;
+            assert_eq!(name(&spec), want, "{input}");
+        }
+    }
+
     fn job(id: &str, tenant: &str) -> JobRow {
         JobRow {
             id: id.into(),
@@ -701,6 +779,7 @@ mod tests {
                 memory_budget: 1 << 30,
                 tile_points: Some(5000),
                 executor: Executor::Local,
+                input_filename: None,
             },
             created_ms: 1,
             started_ms: None,

@@ -116,8 +116,8 @@ fn inspect(
         .map_err(|e| JobsError::io("read an upload", e))?;
     let sniffed = sniff(&head).map(crate::io::Format::name);
     let ext = match (declared, sniffed) {
-        // LAS and LAZ share a name; the header says which it is.
-        (Some(d), Some(s)) if format_of(&d)?.is_las() && s.starts_with("la") => s.to_string(),
+        // LAS, LAZ and COPC share a name and a media type; the header says which it is.
+        (Some(d), Some(s)) if format_of(&d)?.is_las() && format_of(s)?.is_las() => s.to_string(),
         (Some(d), _) => d,
         (None, Some(s)) => s.to_string(),
         (None, None) => {

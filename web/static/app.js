@@ -4,8 +4,10 @@ import { api, ApiProblem, authHeaders, download, setToken, token } from './api.j
 import { buildForm } from './form.js';
 
 const $ = (id) => document.getElementById(id);
-const UPLOADS = 'qemd.uploads';
 let form = null;
+// The tenant's uploads as the server lists them (GET /v1/uploads), by id: a reload lists them
+// again, with their file names.
+const uploads = new Map();
 let viewer = null;
 let pollTimer = null;
 const rows = new Map();
@@ -35,14 +37,14 @@ async function signIn(t, { quiet = false } = {}) {
   $('main').hidden = false;
   $('intro').hidden = true;
   if (!form) await setUpForm();
-  renderUploads();
+  await loadUploads();
   poll();
   return true;
 }
 
 function signOut() {
   setToken('');
-  sessionStorage.removeItem(UPLOADS);
+  uploads.clear();
   clearTimeout(pollTimer);
   rows.clear();
   $('job-rows').textContent = '';
@@ -92,22 +94,28 @@ async function submitJob(ev) {
 
 // ---- uploads ------------------------------------------------------------------------------
 
-function storedUploads() { try { return JSON.parse(sessionStorage.getItem(UPLOADS) || '[]'); } catch { return []; } }
-function storeUpload(u) {
-  const list = storedUploads().filter((x) => x.id !== u.id);
-  list.unshift(u);
-  sessionStorage.setItem(UPLOADS, JSON.stringify(list));
+/** Fetches the tenant's complete uploads (newest first, up to 1000) and redraws the list. */
+async function loadUploads() {
+  try {
+    const page = await api('/v1/uploads?limit=1000');
+    for (const u of page.uploads) if (u.complete) uploads.set(u.id, u);
+    show($('uploads-error'), '');
+  } catch (e) { show($('uploads-error'), `Uploads: ${problemText(e)}`); }
+  renderUploads();
 }
+
+function uploadName(u) { return u.filename || u.id.slice(0, 8); }
 
 function renderUploads() {
   const sel = $('input');
   const keep = sel.value;
   sel.textContent = '';
-  for (const u of storedUploads()) {
+  const list = [...uploads.values()].sort((a, b) => (a.created < b.created ? 1 : a.created > b.created ? -1 : 0));
+  for (const u of list) {
     const what = u.faces != null ? `${u.points} vertices, ${u.faces} faces` : `${u.points ?? '?'} points`;
-    sel.append(new Option(`${u.filename} (${u.format}, ${what})`, u.id));
+    sel.append(new Option(`${uploadName(u)} (${u.format}, ${what})`, u.id));
   }
-  if (keep) sel.value = keep;
+  if (keep && uploads.has(keep)) sel.value = keep;
 }
 
 function uploadFile(file) {
@@ -143,7 +151,7 @@ function uploadFile(file) {
       const id = upload.url.split('/').pop();
       try {
         const u = await api(`/v1/uploads/${id}`);
-        storeUpload({ id, filename: u.filename || file.name, format: u.format, points: u.points, faces: u.faces });
+        uploads.set(id, u);
         renderUploads();
         $('input').value = id;
         pct.textContent = `100 % · ${u.format}, ${u.points?.toLocaleString('en') ?? '?'} ${u.faces != null ? 'vertices' : 'points'}`;
@@ -211,7 +219,8 @@ function upsertRow(job) {
     actions.className = 'actions';
     cells[7].append(actions);
     const view = button('View', () => openViewer(job.id), 'view');
-    const dl = button('Download', () => download(`/v1/jobs/${job.id}/result`, `${job.id}.${r.job.output_format}`).catch((e) => show($('jobs-error'), problemText(e))), 'download');
+    // Saved under the input's name (`scan.denoised.laz`), as the server's Content-Disposition says.
+    const dl = button('Download', () => download(`/v1/jobs/${job.id}/result`, r.job.result?.filename || `${job.id}.${r.job.output_format}`).catch((e) => show($('jobs-error'), problemText(e))), 'download');
     const cancel = button('Cancel', () => cancelJob(job.id), 'cancel');
     actions.append(view, dl, cancel);
     $('job-rows').prepend(tr);
@@ -219,12 +228,13 @@ function upsertRow(job) {
     rows.set(job.id, r);
   }
   r.job = job;
-  const names = Object.fromEntries(storedUploads().map((u) => [u.id, u.filename]));
   const p = job.progress;
   r.tr.dataset.status = job.status;
   r.cells[0].textContent = job.id.slice(0, 8);
   r.cells[0].title = job.id;
-  r.cells[1].textContent = names[job.input] || job.input.slice(0, 8);
+  const up = uploads.get(job.input);
+  r.cells[1].textContent = job.input_filename || (up && uploadName(up)) || job.input.slice(0, 8);
+  r.cells[1].title = job.input;
   r.cells[2].textContent = job.status + (job.message ? `: ${job.message}` : '');
   r.cells[3].textContent = p?.phase ?? '';
   r.cells[4].textContent = p?.tiles_total ? `${p.tiles_done}/${p.tiles_total}` : '';

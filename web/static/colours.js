@@ -43,12 +43,20 @@ export function drawRamp(canvas, ramp) {
   }
 }
 
-/** A length in metres (the input's units) with a sensible unit. */
-export function metres(v) {
+/**
+ * A length in the input's units, labelled as its CRS says (`unit`, the preview's `units`):
+ * metres with a sensible prefix, feet (`ft`, `US ft`) or degrees as they are, and without a
+ * declared unit the bare number in "units" (a mesh of unknown scale is not in millimetres).
+ */
+export function length(v, unit) {
   if (!Number.isFinite(v)) return '–';
   const a = Math.abs(v);
-  if (a === 0) return '0 m';
-  if (a < 1e-3) return `${(v * 1e6).toPrecision(3)} µm`;
-  if (a < 1) return `${(v * 1e3).toPrecision(3)} mm`;
-  return `${v.toPrecision(4)} m`;
+  if (unit === 'm') {
+    if (a === 0) return '0 m';
+    if (a < 1e-3) return `${(v * 1e6).toPrecision(3)} µm`;
+    if (a < 1) return `${(v * 1e3).toPrecision(3)} mm`;
+    return `${v.toPrecision(4)} m`;
+  }
+  const n = a === 0 ? '0' : a >= 1e5 ? v.toFixed(1) : v.toPrecision(4);
+  return `${n} ${unit || 'units'}`;
 }

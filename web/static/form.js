@@ -4,15 +4,29 @@
 
 const esc = (s) => String(s).replace(/[&<>"]/g, (c) => ({ '&': '&amp;', '<': '&lt;', '>': '&gt;', '"': '&quot;' })[c]);
 
-function types(prop) { return Array.isArray(prop.type) ? prop.type : [prop.type]; }
+function types(prop) {
+  if (prop.oneOf) return prop.oneOf.flatMap(types);
+  return Array.isArray(prop.type) ? prop.type : [prop.type];
+}
+
+/** The fields a LiDAR user sets, shown first; every other field folds under "Advanced". */
+export const MAIN = ['method', 'knn', 'max_move', 'classes', 'outliers'];
 
 /** Builds the inputs into `fieldset`; returns { values(), reset(), fields }. */
 export function buildForm(fieldset, schema) {
   const fields = [];
-  // The spec's properties arrive sorted by name; the method and its presets come first.
-  const first = ['method', 'paper', 'iterations', 'rings', 'knn', 'outliers', 'outlier_alpha'];
+  // The spec's properties arrive sorted by name; the main ones come first, in MAIN's order, then
+  // the method's presets.
+  const first = [...MAIN, 'paper', 'iterations', 'rings', 'outlier_alpha'];
   const rank = (n) => (first.includes(n) ? first.indexOf(n) : first.length);
   const entries = Object.entries(schema.properties).sort(([a], [b]) => rank(a) - rank(b) || a.localeCompare(b));
+  const advanced = document.createElement('details');
+  advanced.className = 'advanced';
+  const summary = document.createElement('summary');
+  summary.textContent = `Advanced (${entries.filter(([n]) => !MAIN.includes(n)).length} more)`;
+  const more = document.createElement('div');
+  more.className = 'fields';
+  advanced.append(summary, more);
   for (const [name, prop] of entries) {
     const t = types(prop);
     const nullable = t.includes('null');
@@ -24,6 +38,10 @@ export function buildForm(fieldset, schema) {
     if (prop.enum) {
       input = document.createElement('select');
       for (const v of prop.enum) input.append(new Option(String(v), String(v)));
+    } else if (t.includes('string')) {
+      input = document.createElement('input');
+      input.type = 'text';
+      if (nullable && prop.default === undefined) input.placeholder = 'auto';
     } else if (t.includes('boolean')) {
       input = document.createElement('input');
       input.type = 'checkbox';
@@ -48,9 +66,10 @@ export function buildForm(fieldset, schema) {
       h.innerHTML = esc(help);
       label.append(h);
     }
-    fieldset.append(label);
+    (MAIN.includes(name) ? fieldset : more).append(label);
     fields.push({ name, prop, input, nullable });
   }
+  fieldset.append(advanced);
   const reset = () => {
     for (const f of fields) {
       if (f.input.type === 'checkbox') f.input.checked = f.prop.default === true;
@@ -73,7 +92,7 @@ export function buildForm(fieldset, schema) {
         const raw = input.value.trim();
         if (raw === '' && input.validity.badInput) out[name] = input.validationMessage || 'not a number';
         else if (raw === '') continue;
-        else if (raw !== String(prop.default)) out[name] = Number(raw);
+        else if (raw !== String(prop.default)) out[name] = input.type === 'text' ? raw : Number(raw);
       }
     }
     return out;

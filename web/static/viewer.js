@@ -5,7 +5,7 @@ import * as THREE from 'three';
 import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
 import { PLYLoader } from 'three/addons/loaders/PLYLoader.js';
 import { api, binary } from './api.js';
-import { RAMPS, rampInto, classInto, drawRamp, metres, CLASS_NAMES } from './colours.js';
+import { RAMPS, rampInto, classInto, drawRamp, length, CLASS_NAMES } from './colours.js';
 
 function parsePly(buf) {
   const loader = new PLYLoader();
@@ -55,6 +55,8 @@ export class Viewer {
     const [b, a] = await Promise.all([binary(`/v1/jobs/${id}/preview/before`), binary(`/v1/jobs/${id}/preview/after`)]);
     this.meta = meta;
     this.job = id;
+    const unit = document.getElementById('scale-unit');
+    if (unit) unit.textContent = meta.units || 'input units';
     const geoms = [parsePly(b), parsePly(a)];
     const mesh = meta.kind === 'mesh';
     this.up = mesh ? 1 : 2;
@@ -98,11 +100,14 @@ export class Viewer {
     this.els.root.dataset.job = id;
   }
 
+  /** A length in the preview's units. */
+  len(v) { return length(v, this.meta?.units); }
+
   describe(m) {
     const n = m.points_before.toLocaleString('en');
     const tot = m.points_total.toLocaleString('en');
     const what = m.kind === 'mesh' ? `${n} vertices, ${m.triangles.toLocaleString('en')} triangles` : `${n} of ${tot} points (${m.selection})`;
-    const disp = m.displacement ? ` · moved: mean ${metres(m.displacement.mean)}, p95 ${metres(m.displacement.p95)}, max ${metres(m.displacement.max)}` : ' · not paired (outliers removed): no displacement';
+    const disp = m.displacement ? ` · moved: mean ${this.len(m.displacement.mean)}, p95 ${this.len(m.displacement.p95)}, max ${this.len(m.displacement.max)}` : ' · not paired (outliers removed): no displacement';
     return `${what}${disp}`;
   }
 
@@ -188,15 +193,15 @@ export class Viewer {
     legendBar.hidden = !(this.colour in RAMPS);
     if (this.colour === 'displacement') {
       drawRamp(legendBar, RAMPS.displacement);
-      label('displacement: 0 m');
-      label(metres(this.scaleMax / 2));
-      label(`≥ ${metres(this.scaleMax)}`);
-      if (m?.displacement) label(`(p99 ${metres(m.displacement.p99)}, max ${metres(m.displacement.max)})`);
+      label(`displacement: ${this.len(0)}`);
+      label(this.len(this.scaleMax / 2));
+      label(`≥ ${this.len(this.scaleMax)}`);
+      if (m?.displacement) label(`(p99 ${this.len(m.displacement.p99)}, max ${this.len(m.displacement.max)})`);
     } else if (this.colour === 'height') {
       drawRamp(legendBar, RAMPS.height);
       const o = m ? m.origin[this.up] : 0;
-      label(`height (${'xyz'[this.up]}): ${metres(o + this.upLo)}`);
-      label(metres(o + this.upHi));
+      label(`height (${'xyz'[this.up]}): ${this.len(o + this.upLo)}`);
+      label(this.len(o + this.upHi));
     } else if (this.colour === 'intensity') {
       drawRamp(legendBar, RAMPS.intensity);
       label(`intensity ${Math.round(this.iLo)} – ${Math.round(this.iHi)}`);

@@ -295,14 +295,19 @@ test('run a job on the LAS file: progress reaches 100 %, the viewer shows displa
   const job = await (await fetch(`${base}/v1/jobs/${id}`, { headers: { Authorization: `Bearer ${TOKENS.alice}` } })).json();
   assert.equal(statSync(path).size, job.result.size);
   assert.equal(createHash('sha256').update(readFileSync(path)).digest('hex'), job.result.sha256);
-  assert.equal(dl.suggestedFilename(), `${id}.las`);
+  // Named after the input (issue 51: it was the job id).
+  assert.equal(dl.suggestedFilename(), '4_6_crop.denoised.las');
+  assert.equal(job.result.filename, '4_6_crop.denoised.las');
   await openViewer(page, row);
   assert.equal(await page.getAttribute('#viewer', 'data-colour'), 'displacement');
   // A bounded preview: 20,000 of the 23,875 points, the same on both sides.
   const meta = await (await fetch(`${base}/v1/jobs/${id}/preview`, { headers: { Authorization: `Bearer ${TOKENS.alice}` } })).json();
   assert.deepEqual([meta.points_total, meta.points_before, meta.points_after, meta.paired], [23875, PREVIEW_POINTS, PREVIEW_POINTS, true]);
   assert.match(await page.textContent('#viewer-info'), /20,000 of 23,875 points/);
-  assert.match(await page.textContent('#legend-labels'), /displacement: 0 m/);
+  // Lengths in the units the file's CRS states: 4_6_crop.las is in US survey feet.
+  assert.equal(meta.units, 'US ft');
+  assert.match(await page.textContent('#legend-labels'), /displacement: 0 US ft/);
+  assert.equal(await page.textContent('#scale-unit'), 'US ft');
   const disp = await pixels(page);
   // Both sides draw the scan; the colours are the displacement ramp's: cold points that did not
   // move and hot ones that did, in many shades.
@@ -323,6 +328,34 @@ test('run a job on the LAS file: progress reaches 100 %, the viewer shows displa
   await drawn(page, () => page.keyboard.press('ArrowLeft'));
   const post = await pixels(page);
   assert.notEqual(JSON.stringify(pre), JSON.stringify(post));
+});
+
+test('reload: the uploads are listed again with their names; a job from one downloads under its name', async () => {
+  const page = state.page;
+  await page.reload();
+  await page.waitForSelector('#main:not([hidden])');
+  // The server's list (GET /v1/uploads), not the tab's memory, names them.
+  await page.waitForFunction(() => document.querySelectorAll('#input option').length >= 3);
+  const options = await page.locator('#input option').evaluateAll((os) => os.map((o) => [o.value, o.textContent]));
+  const named = Object.fromEntries(options);
+  assert.match(named[state.las], /^4_6_crop\.las \(las, 23875 points\)$/);
+  assert.match(named[state.mesh], /^l0_fandisk_0\.3_noisy\.obj \(obj, /);
+  // Tenant-scoped: bob's list is empty.
+  const theirs = await (await fetch(`${base}/v1/uploads`, { headers: { Authorization: `Bearer ${TOKENS.bob}` } })).json();
+  assert.equal(theirs.total, 0);
+  // The jobs table names the input file, not its upload id.
+  const lasRow = page.locator(`#job-rows tr[data-job="${state.lasJob}"]`);
+  await lasRow.waitFor();
+  assert.equal(await lasRow.locator('td').nth(1).textContent(), '4_6_crop.las');
+  // A job started from a listed upload; its result downloads under the input's name.
+  const { row } = await runJob(page, state.mesh);
+  assert.equal(await row.locator('td').nth(1).textContent(), 'l0_fandisk_0.3_noisy.obj');
+  const [dl] = await Promise.all([page.waitForEvent('download'), row.locator('button.download').click()]);
+  assert.equal(dl.suggestedFilename(), 'l0_fandisk_0.3_noisy.denoised.obj');
+  // A mesh without units is labelled in the input's units, not in metres.
+  await openViewer(page, row);
+  assert.equal(await page.textContent('#scale-unit'), 'input units');
+  assert.match(await page.textContent('#viewer-info'), /max [0-9.e+-]+ units/);
 });
 
 test('a mesh: shaded before and after differ; flat and smooth shading; toggle layout', async () => {
@@ -423,4 +456,41 @@ test('cancel: a dismissed job leaves the list of actions, and the page logged no
   const provoked = /^(401 GET \/v1\/jobs|422 POST \/v1\/jobs|404 GET \/v1\/jobs\/[0-9a-f-]{36}(\/preview(\/before|\/after)?|\/result)?)$/;
   assert.deepEqual(failedResponses.filter((r) => !provoked.test(r)), []);
   assert.ok(failedResponses.length >= 12, failedResponses.join('\n'));
+});
+
+test('a server without tokens opens the page without asking for one', async () => {
+  const dir = mkdtempSync(join(tmpdir(), 'qemd-web-open-'));
+  const open = spawn(bin, ['serve', '--listen', '127.0.0.1:0', '--data-dir', join(dir, 'data')], {
+    env: { ...process.env, QEMD_AUTH_TOKENS: '', QEMD_LOG_LEVEL: 'warn' },
+    stdio: ['ignore', 'pipe', 'inherit'],
+  });
+  try {
+    const url = await new Promise((ok, fail) => {
+      let out = '';
+      const timer = setTimeout(() => fail(new Error(`no address: ${out}`)), 30_000);
+      open.stdout.on('data', (d) => {
+        out += d;
+        const m = out.match(/listening on (http:\/\/127\.0\.0\.1:\d+)/);
+        if (m) { clearTimeout(timer); ok(m[1]); }
+      });
+    });
+    const context = await browser.newContext();
+    const page = await context.newPage();
+    await page.goto(url + '/');
+    await page.waitForSelector('#main:not([hidden])');
+    assert.equal(await page.isHidden('#signin'), true);
+    assert.equal(await page.isHidden('#signout'), true);
+    assert.match(await page.textContent('#whoami'), /no token needed/);
+    // The drop zone names every format it takes.
+    assert.match(await page.textContent('#drop-help'), /COPC, E57/);
+    // The few fields a LiDAR user sets are shown; the rest fold under Advanced.
+    for (const p of ['method', 'knn', 'max_move', 'classes', 'outliers']) assert.equal(await page.isVisible(`[data-param=${p}]`), true, p);
+    assert.equal(await page.isVisible('[data-param=sigma_r]'), false);
+    await page.click('details.advanced summary');
+    assert.equal(await page.isVisible('[data-param=sigma_r]'), true);
+    await context.close();
+  } finally {
+    open.kill('SIGTERM');
+    rmSync(dir, { recursive: true, force: true });
+  }
 });
