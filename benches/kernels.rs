@@ -208,13 +208,13 @@ fn guarded_stages(c: &mut Criterion) {
     use qem_denoise::denoise::guarded::{self, Guard};
     use qem_denoise::denoise::normals::filter_point_normals;
     use qem_denoise::denoise::structure::{
-        classify, local_fits, near_residuals, noise_scale, planes,
+        Beams, classify, local_fits, near_residuals, noise_scale, planes,
     };
     let pts = cloud(size());
     let index = KnnIndex::build(&pts, origin_of(&pts)).unwrap();
     let (lists, radii) = index.knn_all(16).unwrap();
     let params = Params::default();
-    let mut near = near_residuals(&pts, &lists);
+    let mut near = near_residuals(&pts, &lists, Beams::NONE);
     let m = near.len() / 2;
     let global = *near.select_nth_unstable_by(m, f64::total_cmp).1;
     let fits = local_fits(&pts, &lists);
@@ -227,7 +227,7 @@ fn guarded_stages(c: &mut Criterion) {
     g.sample_size(10);
     g.throughput(Throughput::Elements(pts.len() as u64));
     g.bench_function("global_noise_prepass", |b| {
-        b.iter(|| black_box(near_residuals(&pts, &lists)))
+        b.iter(|| black_box(near_residuals(&pts, &lists, Beams::NONE)))
     });
     g.bench_function("local_fits", |b| {
         b.iter(|| black_box(local_fits(&pts, &lists)))
@@ -247,6 +247,7 @@ fn guarded_stages(c: &mut Criterion) {
         bound: &bound,
         radii: &radii,
         max_move: None,
+        beams: Beams::NONE,
     };
     // The first update of a cycle: `&mut None` has its gains computed.
     g.bench_function("guarded_update", |b| {

@@ -19,7 +19,9 @@ use cpu_time::ProcessTime;
 use glam::DVec3;
 use qem_denoise::denoise::guarded::{self, Guard};
 use qem_denoise::denoise::normals::filter_point_normals;
-use qem_denoise::denoise::structure::{classify, local_fits, near_residuals, noise_scale, planes};
+use qem_denoise::denoise::structure::{
+    Beams, classify, local_fits, near_residuals, noise_scale, planes,
+};
 use qem_denoise::denoise::{Params, origin_of};
 use qem_denoise::io::Cloud;
 use qem_denoise::neighbours::{KnnIndex, spatial_order};
@@ -99,7 +101,7 @@ fn main() -> anyhow::Result<()> {
     }
     let mut near = Vec::new();
     time("near", &mut || {
-        near = near_residuals(&pts, &lists);
+        near = near_residuals(&pts, &lists, Beams::NONE);
         hash_f64(near.iter().copied())
     });
     if stop("near") {
@@ -145,6 +147,7 @@ fn main() -> anyhow::Result<()> {
         bound: &bound,
         radii: &radii,
         max_move: None,
+        beams: Beams::NONE,
     };
     time("update", &mut || {
         let mut gain = None;

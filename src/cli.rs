@@ -246,6 +246,12 @@ pub struct DenoiseArgs {
     /// Write a JSON report (counts, tiles, per-phase wall and CPU time, peak RSS) here.
     #[arg(long)]
     pub report: Option<PathBuf>,
+    /// Point clouds: the sensor's trajectory, a text file of `gps_time x y z` lines in the
+    /// points' time base and coordinates (mobile mapping, airborne): each return's beam runs from
+    /// the position at its GPS time, and the default operator moves it only along that beam.
+    /// The cloud must fit --memory-budget (a tiled run does not carry the times yet).
+    #[arg(long, value_name = "FILE", conflicts_with = "sensor_origin")]
+    pub trajectory: Option<PathBuf>,
     /// Print nothing but errors.
     #[arg(short, long)]
     pub quiet: bool,

@@ -455,6 +455,7 @@ fn denoise(a: DenoiseArgs) -> Result<()> {
         input_format,
         output_format,
         spec: a.run.spec.resolve(config.outlier_alpha)?,
+        trajectory: a.trajectory.clone(),
     };
     let progress: Arc<dyn Progress> = if a.quiet {
         Arc::new(NoProgress)
@@ -525,6 +526,16 @@ fn denoise(a: DenoiseArgs) -> Result<()> {
             eprintln!(
                 "qemd: displacement p50 {:.3e} / p99 {:.3e} / max {:.3e} (input units); {} bounded, {} isolated{held}{classes}",
                 s.displacement.p50, s.displacement.p99, s.displacement.max, s.bounded, s.isolated
+            );
+        }
+        if let Some(noise) = s.noise_estimate {
+            let beams = match report.params.sensor_origin.point() {
+                Some(o) => format!("along the beams from {},{},{}", o.x, o.y, o.z),
+                None => "no beams (--sensor-origin X,Y,Z gives them)".into(),
+            };
+            eprintln!(
+                "qemd: scan noise estimate {noise:.3e} (input units), {beams}; {} steps bounded",
+                s.bounded
             );
         }
         if report.normals == pipeline::NormalsAction::Cleared {

@@ -650,3 +650,19 @@ fn issue16_points_beside_a_blob_over_the_budget_load_the_cells_they_depend_on() 
         "no group ran at a narrower halo: the path is not exercised"
     );
 }
+
+/// Issue 47: a sweep denoised along its beams (`--sensor-origin`) gives the same bytes tiled as
+/// in memory: every tile computes its points' beams from their positions and the one origin.
+#[test]
+#[cfg_attr(debug_assertions, ignore = "release only: heavy in the debug build")]
+fn issue47_beams_any_tile_size() {
+    let dir = tempfile::tempdir().unwrap();
+    let sw = crate::util::Sweep::new(24, 0.5, 0.02, 3);
+    let input = write(dir.path(), "sweep.ply", sw.noisy.clone());
+    let params = Params {
+        sensor_origin: qem_denoise::denoise::SensorOrigin::At(sw.origin.to_array()),
+        ..Params::default()
+    };
+    let reports = assert_seamless(&input, &job(params), SIZES);
+    assert!(reports[0].stats.moved > 0);
+}

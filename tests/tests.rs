@@ -8,6 +8,7 @@
 
 mod util;
 
+mod beams;
 mod cli;
 mod docker;
 mod golden;

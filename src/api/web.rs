@@ -194,6 +194,8 @@ mod tests {
         code["paper"] = serde_json::json!(false);
         // Not serialised when off (stored specs keep their shape).
         code["write_normals"] = serde_json::json!(false);
+        code["sensor_origin"] =
+            serde_json::json!(crate::denoise::SensorOrigin::default().to_string());
         let mut checked = 0;
         for (name, prop) in props {
             let Some(doc_default) = prop.get("default") else {

@@ -27,14 +27,26 @@
 //! points and `STEP_FEATURE · min(s_i, g)` for edge and line points, to `REACH` times its own
 //! k-NN radius in the input, and to `--max-move`: no point moves farther than the noise its
 //! neighbourhood shows, nor out of the ball its neighbours were drawn from. Scatter, sparse and degenerate points do not move.
+//!
+//! **Along the beam.** Where the point's beam `d` is known ([`Beams`]), its error lies along `d`,
+//! so the point moves only along it, to the minimiser of the summed quadric on that line,
+//! `t* = −dᵀb / dᵀAd` ([`Quadric::along`]): no sideways drift, and a return keeps its beam. The
+//! votes' agreement is then measured along the beam too (a plane's offset over the sine of the
+//! angle between beam and plane), as is every noise scale ([`super::structure`]); a line point
+//! (one scan line, whose list cannot fix a plane) steps as far as a surface point, since its
+//! line is a surface sampled along one line.
+//!
+//! On a line the votes are lines through the members along their axes, each axis turned halfway
+//! towards the point's own where the two are within 25° (as [`bent_normal`] does for planes): the
+//! chord property of a circle, so a curved scan ring or a sagging wire is not pushed outwards.
 
 use glam::DVec3;
 use rayon::prelude::*;
 
 use super::Params;
 use super::common::stay;
-use super::qem::bent_normal;
-use super::structure::{LocalFit, Structure};
+use super::qem::{BEND_COS, bent_normal};
+use super::structure::{Beams, LocalFit, Structure};
 use crate::geometry::{Quadric, SymMat3, exp};
 use crate::neighbours::Neighbourhoods;
 
@@ -62,6 +74,10 @@ pub const STEP_FEATURE: f64 = 1.0;
 /// shapes the point-to-mesh RMS rose by at most 0.24 % at 0.4 L and 1.1 % at 0.8 L (mean error
 /// 2.1 %; docs/DECISIONS.md).
 pub const REACH: f64 = 0.25;
+/// Smallest sine of the angle between a point's beam and a voting plane by which the plane's
+/// offset is divided to measure it along the beam (3°): a plane the beam grazes more closely
+/// counts as that far.
+pub const GRAZING: f64 = 0.05;
 /// Cap of a point's noise scale in units of the scan's global noise ([`super::cloud::Globals`]).
 pub const GLOBAL: f64 = 1.0;
 /// Local spread, in units of the capped noise scale, that the noise alone is taken to explain:
@@ -90,6 +106,8 @@ pub struct Guard<'a> {
     pub radii: &'a [f64],
     /// The user's hard cap on any displacement, if any.
     pub max_move: Option<f64>,
+    /// Each point's beam, where known: the point moves only along it.
+    pub beams: Beams<'a>,
 }
 
 /// Adds the quadric of the squared distance to the line through `p` along unit `d`.
@@ -121,18 +139,33 @@ fn agree(r: f64, s: f64) -> f64 {
     exp(-0.5 * t * t)
 }
 
+/// The axis `a` of a voting line turned halfway towards the point's own `own` (its sign first
+/// matched) where the two are within 25°; `a` otherwise. On a circle the line through a member
+/// along the bisector of the two tangents passes through the point itself.
+#[inline]
+fn bent_axis(own: DVec3, a: DVec3) -> DVec3 {
+    let a = if a.dot(own) < 0.0 { -a } else { a };
+    if own != DVec3::ZERO && a != DVec3::ZERO && own.dot(a) > BEND_COS {
+        (own + a).normalize()
+    } else {
+        a
+    }
+}
+
 /// The robust quadric of point `i` (relative to its position).
 fn quadric(pos: &[DVec3], g: &Guard, list: &[u32], i: usize) -> Quadric {
     let v = pos[i];
     let mut q = Quadric::ZERO;
+    let beam = g.beams.at(i);
     match g.classes[i] {
         Structure::Line => {
+            let own = g.fits[i].axis;
             for &u in list {
                 let u = u as usize;
                 if g.classes[u] != Structure::Line {
                     continue;
                 }
-                let d = g.fits[u].axis;
+                let d = bent_axis(own, g.fits[u].axis);
                 let p = pos[u] - v;
                 let r = (p - d * d.dot(p)).length();
                 let w = agree(r, g.noise[u]);
@@ -151,7 +184,11 @@ fn quadric(pos: &[DVec3], g: &Guard, list: &[u32], i: usize) -> Quadric {
                 }
                 let n = bent_normal(ni, nu);
                 let p = pos[u] - v;
-                let w = agree(n.dot(p).abs(), g.noise[u]);
+                let mut r = n.dot(p).abs();
+                if let Some(d) = beam {
+                    r /= n.dot(d).abs().max(GRAZING);
+                }
+                let w = agree(r, g.noise[u]);
                 if w > 0.0 {
                     q.add_plane(n, p, w);
                 }
@@ -200,17 +237,27 @@ pub fn offset_of(
         return (None, 0);
     }
     let q = quadric(pos, g, list, i);
+    if let Some(d) = g.beams.at(i) {
+        return match q.along(d) {
+            Some(t) => (Some(d * t), 0),
+            None => (None, stay::SINGULAR),
+        };
+    }
     match params.solver_for(q.a.trace()).offset(&q) {
         Some(w) => (Some(w), 0),
         None => (None, stay::SINGULAR),
     }
 }
 
-/// Directions a point's offset spans: one (along a plane normal) for surfaces and edges, two
-/// (across the axis) for lines.
+/// Directions a point's offset spans: one (along a plane normal, or along the beam) for
+/// surfaces, edges and points with a beam, two (across the axis) for lines without one.
 #[inline]
-fn dims(s: Structure) -> f64 {
-    if s == Structure::Line { 2.0 } else { 1.0 }
+fn dims(s: Structure, beam: bool) -> f64 {
+    if s == Structure::Line && !beam {
+        2.0
+    } else {
+        1.0
+    }
 }
 
 /// The gain of every point that moves, from the offsets `offs` of the first update.
@@ -247,8 +294,9 @@ pub fn gain_of(list: &[u32], g: &Guard, offs: &[(Option<DVec3>, u8)], i: usize) 
     };
     let (mut sum, mut n) = (0.0, 0usize);
     for &u in list {
-        if let Some(w) = offs[u as usize].0 {
-            sum += w.length_squared() / dims(g.classes[u as usize]);
+        let u = u as usize;
+        if let Some(w) = offs[u].0 {
+            sum += w.length_squared() / dims(g.classes[u], g.beams.at(u).is_some());
             n += 1;
         }
     }
@@ -287,10 +335,10 @@ pub fn moved(v: DVec3, off: (Option<DVec3>, u8), gain: f64, g: &Guard, i: usize)
     let (Some(w), _) = off else {
         return (v, off.1);
     };
-    let step = if g.classes[i] == Structure::Surface {
-        STEP
-    } else {
-        STEP_FEATURE
+    let step = match g.classes[i] {
+        Structure::Surface => STEP,
+        Structure::Line if g.beams.at(i).is_some() => STEP,
+        _ => STEP_FEATURE,
     };
     let mut bound = (step * g.bound[i]).min(REACH * g.radii[i].sqrt());
     if let Some(m) = g.max_move {

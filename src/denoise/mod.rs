@@ -17,6 +17,7 @@
 //! The kernels are in [`qem`], [`bilateral`] and [`normals`]; [`cloud`] runs them on a set of
 //! points, which is what the in-memory path and every tile of the out-of-core path do.
 
+pub mod beams;
 pub mod bilateral;
 pub mod cloud;
 pub mod common;
@@ -30,6 +31,7 @@ mod stats;
 pub mod structure;
 pub mod written;
 
+pub use beams::SensorOrigin;
 pub use stats::{Displacements, PhaseTiming, Stats, StructureCounts, Timer};
 
 use glam::DVec3;
@@ -201,6 +203,17 @@ pub struct Params {
     /// schema. Not serialised when off, so stored specs and reports keep their shape.
     #[serde(skip_serializing_if = "is_false")]
     pub write_normals: bool,
+    /// `--sensor-origin`: on point clouds, where the beams come from ([`beams`]): the guarded
+    /// operator fits each neighbourhood along each return's beam and moves the return only along
+    /// it. `Auto`: the sensor's frame for the formats stored in it (KITTI, nuScenes), none
+    /// elsewhere. Not serialised when `Auto`, so stored specs keep their shape.
+    #[serde(skip_serializing_if = "is_auto")]
+    pub sensor_origin: SensorOrigin,
+}
+
+/// serde's `skip_serializing_if` for a sensor origin left to the input.
+fn is_auto(o: &SensorOrigin) -> bool {
+    *o == SensorOrigin::Auto
 }
 
 /// serde's `skip_serializing_if` for a flag that is off.
@@ -232,6 +245,7 @@ impl Default for Params {
             max_move: None,
             radius: None,
             write_normals: false,
+            sensor_origin: SensorOrigin::Auto,
         }
     }
 }
@@ -357,6 +371,9 @@ impl Params {
         }
         if self.radius.is_some_and(|r| !r.is_finite() || r <= 0.0) {
             return bad("radius", "must be finite and > 0");
+        }
+        if !self.sensor_origin.is_valid() {
+            return bad("sensor_origin", "must be three finite coordinates");
         }
         self.solver().validate()?;
         Ok(())

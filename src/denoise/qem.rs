@@ -208,7 +208,7 @@ pub fn point_step(
 
 /// Cosine of the largest angle between a point's normal and a neighbour's for which the
 /// neighbour's plane uses the bisecting normal (25°).
-const BEND_COS: f64 = 0.906_307_787_036_649_9;
+pub(crate) const BEND_COS: f64 = 0.906_307_787_036_649_9;
 
 /// The curvature-corrected normal of neighbour normal `nu` seen from a point of normal `ni`:
 /// `nu` turned to agree with `ni` (PCA normals have no sign), then the bisector of the two where

@@ -52,6 +52,12 @@ pub struct Stats {
     pub held: u64,
     /// Largest distance between a point's input and output positions.
     pub max_step: f64,
+    /// The guarded operator's estimate of the scan's noise, in the input's units
+    /// ([`crate::denoise::cloud::Globals::noise`]: along the beams where they are known): every
+    /// step is bounded by a few times it, so a scan read as noise-free does not move. `None` for
+    /// the other operators.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub noise_estimate: Option<f64>,
     /// Points per neighbourhood class (point clouds with the guarded operator).
     #[serde(default)]
     pub structure: StructureCounts,
@@ -104,6 +110,8 @@ impl Stats {
         self.duplicates += o.duplicates;
         self.non_finite += o.non_finite;
         self.max_step = self.max_step.max(o.max_step);
+        // Every tile reads the same global estimate.
+        self.noise_estimate = self.noise_estimate.or(o.noise_estimate);
         for p in &o.phases {
             self.add_phase(&p.name, p.wall_s, p.cpu_s);
         }

@@ -8,7 +8,8 @@
 //! * [`Solve`] turns a summed quadric into a new position: the paper's `plain` minimiser, Lindstrom's
 //!   `robust` truncated pseudo-inverse, or a `regularised` minimiser that bounds the step.
 //! * [`pca_fit`] gives a neighbourhood's principal axes; [`pca_normal`] its plane (smallest
-//!   eigenvector of the centred covariance).
+//!   eigenvector of the centred covariance). [`along_fit`] fits a neighbourhood along a known
+//!   beam direction (LiDAR range noise); [`Quadric::along`] minimises a quadric on a beam.
 //! * [`floor_i64`] keys a coordinate to its cell without a libm call; [`exp`] is `eˣ` without
 //!   one, the same bits on every platform (the operators' Gaussian weights).
 //! * [`ExactSum`] adds f64 values without rounding, so global means are the same bits whatever the
@@ -18,11 +19,13 @@
 //! minimised near the origin returns an offset from `v`. That keeps every intermediate small even on
 //! UTM-sized coordinates, and makes the operator exactly translation invariant in exact arithmetic.
 
+mod along;
 mod cell;
 mod eigen;
 mod exp;
 mod sum;
 
+pub use along::{AlongFit, along_fit};
 pub use cell::floor_i64;
 pub use eigen::{Eigen, SymMat3, any_orthogonal};
 pub use exp::exp;
@@ -87,6 +90,20 @@ impl Quadric {
         self.c += weight * d * d;
     }
 
+    /// The minimiser `t` of the quadric on the line `t·d` through the origin (the vertex):
+    /// `t = −dᵀb / dᵀAd`, one division. `None` when the quadric barely varies along `d`
+    /// (`dᵀAd ≤` [`SINGULAR_ALONG`] `· tr A`: planes that contain the line, which fix no point
+    /// on it) or the result is not finite.
+    #[inline]
+    pub fn along(&self, d: DVec3) -> Option<f64> {
+        let dad = d.dot(self.a.mul_vec(d));
+        if dad.is_nan() || dad <= SINGULAR_ALONG * self.a.trace() {
+            return None;
+        }
+        let t = -d.dot(self.b) / dad;
+        t.is_finite().then_some(t)
+    }
+
     /// Evaluates the quadric at `w`.
     pub fn eval(&self, w: DVec3) -> f64 {
         w.dot(self.a.mul_vec(w)) + 2.0 * self.b.dot(w) + self.c
@@ -140,6 +157,12 @@ pub enum Solve {
 
 /// Relative threshold below which the plain solve treats `A` as singular.
 pub const SINGULAR_RATIO: f64 = 1e-12;
+
+/// Smallest `dᵀAd / tr A` of a quadric that [`Quadric::along`] minimises along `d`: below it the
+/// summed planes all but contain the line (for one plane, `dᵀAd / tr A` is the squared sine of
+/// the angle between the line and the plane: 1e-6 is 0.06°), so a step along it would divide the
+/// planes' offset by a vanishing sine, and the point stays.
+pub const SINGULAR_ALONG: f64 = 1e-6;
 
 impl Solve {
     /// Checks the parameter ranges.

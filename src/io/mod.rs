@@ -386,6 +386,14 @@ impl Format {
         )
     }
 
+    /// True for the formats that store a sweep in its sensor's frame, the sensor at the origin
+    /// (KITTI Velodyne `.bin`, nuScenes `.pcd.bin`): every return's beam runs from `(0, 0, 0)`.
+    /// A raw `.bin` of another layout makes no such promise, nor does PCD, whose `VIEWPOINT` is
+    /// commonly left at its default on clouds that are not in a sensor's frame.
+    pub fn sensor_frame(self) -> bool {
+        matches!(self, Format::Kitti | Format::Nuscenes)
+    }
+
     /// LAS, LAZ or COPC: one reader, one point model.
     pub fn is_las(self) -> bool {
         matches!(self, Format::Las | Format::Laz | Format::Copc)

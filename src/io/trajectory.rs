@@ -15,18 +15,25 @@
 //! * Lines that are empty or start with `#` are comments.
 //! * Times never decrease. Between two samples the position is interpolated linearly (exact for
 //!   the simulator's straight paths, which it samples at every mobile profile and every 0.01 s of
-//!   an airborne strip); before the first and after the last it is the end sample's. A sweep or
-//!   a terrestrial station is a sensor standing still: two samples with the same position at its
-//!   first and last pulse.
+//!   an airborne strip). Outside the samples' time span a return has no known origin (`None`:
+//!   `qemd denoise --trajectory` denoises it without a beam, rather than give it one from an end
+//!   sample seconds away), except that a single sample is a sensor standing still at any time. A
+//!   sweep or a terrestrial station is a sensor standing still: two samples with the same
+//!   position at its first and last pulse, or one.
 //!
 //! Numbers are written in Rust's shortest round-trip form, so a trajectory reads back exactly.
+//!
+//! [`TimeField`] finds the time a return is matched by: LAS `gps_time`, else a field named
+//! `gps_time`, `time`, `timestamp` or `t` (PLY, PCD — ROS drivers' `time` —, text columns), in
+//! the trajectory's time base.
 
 use std::io::{BufRead, BufReader, Write};
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use glam::DVec3;
 
 use super::{AtomicFile, IoError};
+use crate::points::Schema;
 
 /// A sensor's positions over time.
 #[derive(Debug, Clone, Default, PartialEq)]
@@ -100,23 +107,62 @@ impl Trajectory {
         f.commit()
     }
 
-    /// The position at time `t`: linear between the samples around it, the end sample's outside.
+    /// The position at time `t`: linear between the samples around it; `None` outside the
+    /// samples' time span (or for a non-finite `t`), but a single sample's position at any time.
     /// `None` without samples.
     pub fn position_at(&self, t: f64) -> Option<DVec3> {
         let s = &self.samples;
-        let first = s.first()?;
-        let k = s.partition_point(|&(ts, _)| ts <= t);
-        if k == 0 {
+        let (first, last) = (s.first()?, s.last()?);
+        if s.len() == 1 {
             return Some(first.1);
         }
+        if t.is_nan() || t < first.0 || t > last.0 {
+            return None;
+        }
+        let k = s.partition_point(|&(ts, _)| ts <= t);
         if k == s.len() {
-            return Some(s[k - 1].1);
+            return Some(last.1);
         }
         let ((t0, p0), (t1, p1)) = (s[k - 1], s[k]);
         if t1 <= t0 {
             return Some(p1);
         }
         Some(p0.lerp(p1, (t - t0) / (t1 - t0)))
+    }
+}
+
+/// Which field of a record holds its time, for matching a trajectory.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct TimeField {
+    index: usize,
+}
+
+impl TimeField {
+    /// Names a time field may have, in the order they are looked for.
+    pub const NAMES: [&'static str; 4] = ["gps_time", "time", "timestamp", "t"];
+
+    /// The time field of `schema`, `None` when it has none.
+    pub fn of(schema: &Schema) -> Option<TimeField> {
+        TimeField::NAMES
+            .iter()
+            .find_map(|n| schema.field_index(n))
+            .map(|index| TimeField { index })
+    }
+
+    /// The time of `record`.
+    pub fn get(&self, schema: &Schema, record: &[u8]) -> f64 {
+        schema.get_f64(record, self.index)
+    }
+}
+
+/// The error of an input without a time field, asked to match a trajectory.
+pub fn no_time_field(input: &Path) -> IoError {
+    IoError::Unsupported {
+        path: PathBuf::from(input),
+        detail: format!(
+            "has no time field ({}) to match the trajectory's samples by",
+            TimeField::NAMES.join(", ")
+        ),
     }
 }
 
@@ -140,8 +186,16 @@ mod tests {
         assert_eq!(back, t);
         let mid = back.position_at(1000.05).unwrap();
         assert!((mid - DVec3::new(0.5, -1.8, 1.745)).length() < 1e-9);
-        assert_eq!(back.position_at(900.0), Some(t.samples[0].1));
-        assert_eq!(back.position_at(2000.0), Some(t.samples[2].1));
+        assert_eq!(back.position_at(1000.0), Some(t.samples[0].1));
+        assert_eq!(back.position_at(1000.3), Some(t.samples[2].1));
+        // Outside the span a return has no origin; a single sample stands still.
+        assert_eq!(back.position_at(900.0), None);
+        assert_eq!(back.position_at(2000.0), None);
+        assert_eq!(back.position_at(f64::NAN), None);
+        let still = Trajectory {
+            samples: vec![(5.0, DVec3::ONE)],
+        };
+        assert_eq!(still.position_at(-1e9), Some(DVec3::ONE));
         // Extra columns are ignored; comments and blank lines skipped.
         std::fs::write(&path, "# c\n\n1 2 3 4 0.1 0.2 0.3\n").unwrap();
         assert_eq!(

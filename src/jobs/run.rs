@@ -189,6 +189,7 @@ impl Jobs {
             input_format: Some(input.1),
             output_format: Some(spec.output_format),
             spec: spec.denoise.clone(),
+            trajectory: None,
         };
         let opts = RunOptions {
             memory_budget: spec.memory_budget,

@@ -84,6 +84,7 @@ impl Jobs {
                 input_format: Some(input_format),
                 output_format: Some(output_format),
                 spec,
+                trajectory: None,
             };
             let opts = RunOptions {
                 memory_budget: budget,

@@ -60,6 +60,10 @@ pub fn run_bytes(
     let timer = Timer::start();
     opts.progress.phase("read", 0);
     let cloud = Cloud::read_input(input, input_format)?;
+    let job = &Job {
+        spec: job.spec.for_format(cloud.info.format),
+        ..job.clone()
+    };
     let mesh = job.spec.params.mesh_mode(cloud.info.has_faces());
     let per_point = bytes_per_point(&job.spec.params, cloud.info.schema.record_len);
     let fits = (cloud.len() as u64).saturating_mul(per_point) <= opts.memory_budget;

@@ -34,6 +34,9 @@ pub struct Job {
     pub output_format: Option<Format>,
     /// What the run computes.
     pub spec: DenoiseSpec,
+    /// Point clouds: the sensor's trajectory (`--trajectory`, [`crate::io::trajectory`]): each
+    /// return's beam runs from the position at its time.
+    pub trajectory: Option<PathBuf>,
 }
 
 impl Job {
@@ -45,6 +48,7 @@ impl Job {
             input_format: None,
             output_format: None,
             spec: DenoiseSpec::default(),
+            trajectory: None,
         }
     }
 }

@@ -37,6 +37,34 @@ pub(super) fn check_points(positions: &[DVec3]) -> Result<(), DenoiseError> {
     Ok(())
 }
 
+/// The beam of every point from the trajectory at `path`, matched by each record's time
+/// ([`io::trajectory`]); zero for a point outside the trajectory's time span.
+///
+/// # Errors
+/// An unreadable or malformed trajectory; an input without a time field.
+fn trajectory_beams(
+    job: &Job,
+    path: &std::path::Path,
+    info: &SourceInfo,
+    positions: &[DVec3],
+    records: &[u8],
+) -> Result<Vec<DVec3>, PipelineError> {
+    let trajectory = io::trajectory::Trajectory::read(path)?;
+    let schema = &info.schema;
+    let field = io::trajectory::TimeField::of(schema)
+        .ok_or_else(|| io::trajectory::no_time_field(&job.input))?;
+    let len = schema.record_len.max(1);
+    Ok(positions
+        .iter()
+        .zip(records.chunks_exact(len))
+        .map(|(&p, r)| {
+            trajectory
+                .position_at(field.get(schema, r))
+                .map_or(DVec3::ZERO, |o| crate::denoise::beams::direction(p, o))
+        })
+        .collect())
+}
+
 /// Denoises the point cloud `job` names in memory.
 ///
 /// # Errors
@@ -80,8 +108,16 @@ pub(crate) fn run_cloud(
             .map(|r| s.held(r))
             .collect()
     });
+    let beams = match &job.trajectory {
+        Some(path) => Some(trajectory_beams(job, path, &info, &positions, &records)?),
+        None => None,
+    };
     let result = with_cancel(&opts.cancel, || {
-        cloud::run_all_with(&positions, &job.spec.params, held.as_deref())
+        let per = cloud::PerPoint {
+            held: held.as_deref(),
+            beams: beams.as_deref(),
+        };
+        cloud::run_all_with(&positions, &job.spec.params, per)
     })
     .map_err(denoise_err)?;
     drop(held);

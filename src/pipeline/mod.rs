@@ -126,6 +126,13 @@ pub fn fits_in_memory(points: u64, per_point: u64, budget: u64) -> bool {
 /// temporary directory, cancellation, write failures.
 pub fn run(job: &Job, opts: &RunOptions) -> Result<Report, PipelineError> {
     job.spec.validate()?;
+    if job.trajectory.is_some() && job.spec.params.sensor_origin.point().is_some() {
+        return Err(SpecError {
+            field: "trajectory",
+            detail: "and sensor_origin both give the beams; give one".into(),
+        }
+        .into());
+    }
     if let Some(t) = &opts.temp_dir
         && !t.is_dir()
     {
@@ -157,6 +164,18 @@ pub fn run(job: &Job, opts: &RunOptions) -> Result<Report, PipelineError> {
 
 /// Refuses written normals towards an output format that cannot hold them, before any work, when
 /// the format is known from the job or the output's extension (the sink refuses it otherwise).
+/// Refuses a job with a trajectory (`--trajectory`) for `why`.
+fn refuse_trajectory(job: &Job, why: &str) -> Result<(), PipelineError> {
+    match &job.trajectory {
+        Some(_) => Err(SpecError {
+            field: "trajectory",
+            detail: why.to_string(),
+        }
+        .into()),
+        None => Ok(()),
+    }
+}
+
 fn refuse_normals_early(job: &Job) -> Result<(), PipelineError> {
     let format = job
         .output_format
@@ -178,8 +197,13 @@ fn run_file(job: &Job, opts: &RunOptions) -> Result<Report, PipelineError> {
     let source = io::open(&job.input, job.input_format)?;
     let info = source.info().clone();
     drop(source);
+    let job = &Job {
+        spec: job.spec.for_format(info.format),
+        ..job.clone()
+    };
     let mut report = if job.spec.params.mesh_mode(info.has_faces()) {
         job.spec.check_mesh(true)?;
+        refuse_trajectory(job, "applies to point clouds, not meshes")?;
         mesh::run(job, opts, &info)?
     } else {
         let per_point = bytes_per_point(&job.spec.params, info.schema.record_len);
@@ -189,6 +213,11 @@ fn run_file(job: &Job, opts: &RunOptions) -> Result<Report, PipelineError> {
         if opts.tile_points.is_none() && fits {
             memory::run(job, opts)?
         } else {
+            refuse_trajectory(
+                job,
+                "needs the cloud in memory: it does not fit --memory-budget (or --tile-points \
+                 asks for tiles), and a tiled run does not carry the points' times yet",
+            )?;
             tiled::run(job, opts, &info, per_point)?
         }
     };

@@ -23,7 +23,9 @@ use thiserror::Error;
 
 use super::OutlierMode;
 use super::classes::ClassList;
-use crate::denoise::{DenoiseError, Method, NormalWeighting, Params, Planes, SolveKind};
+use crate::denoise::{
+    DenoiseError, Method, NormalWeighting, Params, Planes, SensorOrigin, SolveKind,
+};
 
 /// The default outlier threshold: mean k-NN distance above mean + 2σ over the cloud.
 pub const DEFAULT_OUTLIER_ALPHA: f64 = 2.0;
@@ -94,6 +96,23 @@ impl DenoiseSpec {
     pub fn validate(&self) -> Result<(), SpecError> {
         self.params.validate()?;
         validate_alpha(self.outlier_alpha)
+    }
+
+    /// This spec for an input of `format`: a sensor origin left to the input
+    /// ([`SensorOrigin::Auto`]) becomes `0,0,0` for formats stored in their sensor's frame
+    /// ([`crate::io::Format::sensor_frame`]) and `none` for the others, so a run, its report and
+    /// a frozen scale-out job state the beams in force.
+    /// (A job with a trajectory gets its beams from it instead: see [`super::Job::trajectory`].)
+    pub fn for_format(&self, format: crate::io::Format) -> DenoiseSpec {
+        let mut spec = self.clone();
+        if spec.params.sensor_origin == SensorOrigin::Auto {
+            spec.params.sensor_origin = if format.sensor_frame() {
+                SensorOrigin::At([0.0; 3])
+            } else {
+                SensorOrigin::Off
+            };
+        }
+        spec
     }
 
     /// Refuses, for a run in mesh mode (`mesh`), the options that apply to point clouds only:
@@ -290,6 +309,14 @@ pub struct SpecOverlay {
     )]
     #[serde(skip_serializing_if = "Option::is_none")]
     pub write_normals: Option<bool>,
+    /// Point clouds: the sensor's position, X,Y,Z in the input's coordinates (a sweep or a
+    /// terrestrial station): each return's beam runs from it, and the default operator fits
+    /// neighbourhoods along the beams and moves each return only along its own. `auto` (the
+    /// default): KITTI and nuScenes sweeps, stored in their sensor's frame, have it at 0,0,0;
+    /// other inputs have no beams. `none`: no beams.
+    #[cfg_attr(feature = "cli", arg(long, value_name = "X,Y,Z"))]
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub sensor_origin: Option<SensorOrigin>,
 }
 
 impl SpecOverlay {
@@ -322,6 +349,7 @@ impl SpecOverlay {
         set(&mut p.volume, self.volume);
         set(&mut p.guard, self.guard);
         set(&mut p.write_normals, self.write_normals);
+        set(&mut p.sensor_origin, self.sensor_origin);
         set(&mut p.rings, self.rings);
         set(&mut p.normals, self.normals);
         set(&mut p.solve, self.solve);
@@ -390,7 +418,8 @@ impl SpecOverlay {
             outliers,
             outlier_alpha,
             classes,
-            write_normals
+            write_normals,
+            sensor_origin
         );
         Ok(self)
     }
@@ -455,6 +484,7 @@ mod tests {
         // Every field of Params serialises when set (`write_normals` only when on).
         let all = Params {
             write_normals: true,
+            sensor_origin: SensorOrigin::At([0.0; 3]),
             ..Params::default()
         };
         let Ok(serde_json::Value::Object(params)) = serde_json::to_value(all) else {
@@ -587,6 +617,7 @@ mod tests {
         // over an empty one comes back whole: a field left out of `merge` would be dropped.
         let all = Params {
             write_normals: true,
+            sensor_origin: SensorOrigin::At([0.0; 3]),
             ..Params::default()
         };
         let Ok(serde_json::Value::Object(mut m)) = serde_json::to_value(all) else {

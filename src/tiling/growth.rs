@@ -476,6 +476,7 @@ fn run_kernel<V>(
             .then_some(&complete as &(dyn Fn(DVec3, f64) -> bool + Sync)),
         wanted: Some(&owned),
         held: held.iter().any(|&h| h).then_some(held.as_slice()),
+        beams: None,
     };
     f(pts, &run)
 }

@@ -5,6 +5,7 @@
 //! The in-memory run takes them from its own lists ([`partial_of`]); a tiled run sums each
 //! tile's exact contributions in a pre-pass ([`globals_partial`]) and merges them.
 
+use glam::DVec3;
 use rayon::prelude::*;
 
 use super::graph::{Graph, graph};
@@ -20,8 +21,9 @@ pub struct Globals {
     /// σc. Zero when the method does not need it.
     pub spacing: f64,
     /// The sensor's noise: the median over all points of [`crate::denoise::structure::near_residual`]
-    /// (the RMS residual of the plane through a point's nearest 8), read as the upper edge of its
-    /// 2 % histogram bin. It caps every guarded step (one scan, one sensor, one noise level, so a
+    /// (the RMS residual of a point's nearest 8 about their own plane, or line where they lie on
+    /// one, or along the beam where beams are known), read as the upper edge of its 2 % histogram
+    /// bin. It caps every guarded step (one scan, one sensor, one noise level, so a
     /// coarse far-range neighbourhood cannot license a step of its own coarse scale). Zero when
     /// the method does not need it.
     #[serde(default)]
@@ -103,9 +105,10 @@ pub fn globals_partial(
             .map(|i| run.wanted.is_none_or(|w| w[i]) && in_noise_sample(run.ties[i], points))
             .collect()
     });
+    let own = super::own_beams(run, params);
     let run = CloudRun {
         wanted: sampled.as_deref().or(run.wanted),
-        ..*run
+        ..super::with_beams(run, own.as_deref())
     };
     let g = graph(&run, kg, 0, None)?;
     let exact_f = Taint::of(&run, &g).seeds;
@@ -161,7 +164,13 @@ pub(super) fn partial_of(
             .with_min_len(1024)
             .map(|j| {
                 take(j).then(|| {
-                    crate::denoise::structure::near_residual(&frame.positions, lists.get(j), j)
+                    let beam = g.beams.as_ref().map(|b| b[j]).filter(|d| *d != DVec3::ZERO);
+                    crate::denoise::structure::near_residual(
+                        &frame.positions,
+                        lists.get(j),
+                        j,
+                        beam,
+                    )
                 })
             })
             .collect()

@@ -8,7 +8,7 @@ use super::CloudRun;
 use crate::denoise::DenoiseError;
 use crate::denoise::frame::Frame;
 use crate::denoise::isolation::{cap_one, is_isolated};
-use crate::denoise::structure::{LocalFit, Structure, class_of, local_fit};
+use crate::denoise::structure::{Beams, LocalFit, Structure, class_of, local_fit};
 use crate::neighbours::{KnnIndex, Listed, Neighbourhoods, Prune, Seen, keep_near};
 
 /// The k-NN graph of a run in spatial order, capped at the isolation radius.
@@ -28,6 +28,18 @@ pub(super) struct Graph {
     pub(super) isolated: Vec<bool>,
     /// Which points have their own list (empty: all): the others' results are not exact.
     pub(super) listed: Vec<bool>,
+    /// Each point's beam ([`CloudRun::beams`]) in frame order, `None` without beams.
+    pub(super) beams: Option<Vec<DVec3>>,
+}
+
+/// What round-by-round listing needs to stop at the points that stay ([`Stays`]): the hops
+/// left ([`Prune::least`]) and the scan's noise along the beams (the classes read it).
+#[derive(Debug, Clone, Copy)]
+pub(super) struct Stops {
+    /// Hops left, see [`Prune::least`].
+    pub(super) least: usize,
+    /// [`crate::denoise::cloud::Globals::noise`].
+    pub(super) noise: f64,
 }
 
 /// [`CloudRun::wanted`] points are listed round by round (with what they depend on) only when
@@ -45,7 +57,7 @@ pub(super) fn graph(
     run: &CloudRun,
     k: usize,
     hops: usize,
-    stops: Option<usize>,
+    stops: Option<Stops>,
 ) -> Result<Graph, DenoiseError> {
     Ok(capped(run, k, listing(run, k, hops, stops)?))
 }
@@ -57,6 +69,7 @@ pub(super) struct Listing {
     pub(super) lists: Neighbourhoods,
     pub(super) radii: Vec<f64>,
     pub(super) listed: Vec<bool>,
+    pub(super) beams: Option<Vec<DVec3>>,
 }
 
 /// The lists of [`graph`], not capped yet. Without [`CloudRun::wanted`] points the run's
@@ -65,9 +78,10 @@ pub(super) fn listing(
     run: &CloudRun,
     k: usize,
     hops: usize,
-    stops: Option<usize>,
+    stops: Option<Stops>,
 ) -> Result<Listing, DenoiseError> {
     let frame = Frame::new(run.positions, Some(run.ties));
+    let beams = in_frame(&frame, run.beams);
     let index = KnnIndex::build_with_ties(&frame.positions, run.origin, frame.ties.clone())?;
     let seeds: Option<(Vec<bool>, bool)> = run.wanted.map(|w| {
         let n = w.iter().filter(|&&x| x).count();
@@ -78,6 +92,10 @@ pub(super) fn listing(
         Some((s, true)) => {
             let mut stays = Stays {
                 pos: &frame.positions,
+                beams: Beams {
+                    dirs: beams.as_deref(),
+                    noise: stops.map_or(0.0, |s| s.noise),
+                },
                 index: &index,
                 cap2: run.isolation.map(|c| c * c),
                 least: crate::denoise::isolation::least_list(k, run.short_lists),
@@ -86,9 +104,9 @@ pub(super) fn listing(
                 buf: Vec::new(),
             };
             let mut seen = |x: u32, listed: &Listed, decide: bool| stays.seen(x, listed, decide);
-            let prune = stops.map(|least| Prune {
+            let prune = stops.map(|s| Prune {
                 seen: &mut seen,
-                least,
+                least: s.least,
             });
             index.knn_near(k, &s, hops, prune)?
         }
@@ -107,7 +125,13 @@ pub(super) fn listing(
         lists,
         radii,
         listed,
+        beams,
     })
+}
+
+/// `beams` (input order) in `frame`'s order.
+fn in_frame(frame: &Frame, beams: Option<&[DVec3]>) -> Option<Vec<DVec3>> {
+    beams.map(|b| frame.order.iter().map(|&i| b[i as usize]).collect())
 }
 
 /// [`graph`] from its [`listing`]: the lists capped at the run's isolation radius.
@@ -118,7 +142,11 @@ pub(super) fn capped(run: &CloudRun, k: usize, listing: Listing) -> Graph {
         lists,
         radii,
         listed,
+        beams,
     } = listing;
+    // A listing made before the run had its beams (the in-memory run lists once for the
+    // isolation radius) takes them now.
+    let beams = beams.or_else(|| in_frame(&frame, run.beams));
     let (lists, radii, capped) =
         crate::denoise::isolation::cap_lists(lists, radii, run.isolation, |i, u| index.dist2(i, u));
     let least = crate::denoise::isolation::least_list(k, run.short_lists);
@@ -133,6 +161,7 @@ pub(super) fn capped(run: &CloudRun, k: usize, listing: Listing) -> Graph {
         capped,
         isolated,
         listed,
+        beams,
     }
 }
 
@@ -168,6 +197,8 @@ pub(super) fn typical_from_lists(l: &Listing, population: u64, k: usize) -> Opti
 /// `run_on`'s `settled`, computed as the lists are found).
 struct Stays<'a> {
     pos: &'a [DVec3],
+    /// The beams in frame order and the scan's noise (the classes read them).
+    beams: Beams<'a>,
     index: &'a KnnIndex,
     /// The isolation radius, squared.
     cap2: Option<f64>,
@@ -195,7 +226,7 @@ impl Stays<'_> {
         let class = if is_isolated(capped, kept, self.least) {
             LocalFit::isolated().own
         } else {
-            local_fit(self.pos, &list[..kept], u as usize).own
+            local_fit(self.pos, &list[..kept], u as usize, self.beams).own
         };
         self.own[u as usize] = Some((class, r2, kept));
         Some((class, r2, kept))

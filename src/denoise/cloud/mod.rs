@@ -57,14 +57,16 @@ use glam::DVec3;
 use rayon::prelude::*;
 
 use self::globals::{globals_k, partial_of};
-use self::graph::{Graph, Listing, capped, graph, listing, typical_from_lists};
+use self::graph::{Graph, Listing, Stops, capped, graph, listing, typical_from_lists};
 use self::hops::{graded, hop_depths, update_reach};
 use self::taint::Taint;
 use super::common::{Within, merge_step, stay};
 use super::guarded::{self, Guard};
 use super::normals::{filter_point_normals, filter_point_normals_within, pca_normals};
 use super::qem::is_duplicate;
-use super::structure::{Structure, classify_within, local_fits_within, noise_scale_within, planes};
+use super::structure::{
+    Beams, Structure, classify_within, local_fits_within, noise_scale_within, planes,
+};
 use super::written::of_cycle;
 use super::{DenoiseError, Method, Params, Stats, StructureCounts, Timer, bilateral, qem};
 use crate::neighbours::NeighboursError;
@@ -148,6 +150,10 @@ pub struct CloudRun<'a> {
     pub wanted: Option<&'a [bool]>,
     /// Points that keep their position but serve as neighbours (`--classes`), `None` for none.
     pub held: Option<&'a [bool]>,
+    /// Each point's beam (unit direction from the sensor, zero where unknown), `None` for
+    /// none; the guarded operator fits and moves along it ([`super::beams`]). A run of params
+    /// with a [`super::SensorOrigin::At`] computes them from the positions when this is `None`.
+    pub beams: Option<&'a [DVec3]>,
     /// For a tile: whether the ball (centre, squared radius) holds no point the caller does not
     /// have, for balls that leave `region` (the tiling's occupancy grid proves it). `None`: only
     /// balls inside `region` are complete.
@@ -221,8 +227,30 @@ pub fn run(
     globals: &Globals,
 ) -> Result<CloudResult, DenoiseError> {
     let timer = Timer::start();
-    let g = graph(run, params.k(), reach(params), stops(params))?;
+    let own = own_beams(run, params);
+    let run = &with_beams(run, own.as_deref());
+    let stops = stops(params).map(|least| Stops {
+        least,
+        noise: globals.noise,
+    });
+    let g = graph(run, params.k(), reach(params), stops)?;
     run_on(run, params, globals, g, timer)
+}
+
+/// The beams of a run of the guarded operator whose params give one sensor position and whose
+/// caller gave none ([`CloudRun::beams`]), from the positions; `None` otherwise.
+pub(super) fn own_beams(run: &CloudRun, params: &Params) -> Option<Vec<DVec3>> {
+    let o = params.sensor_origin.point()?;
+    (guarded_qem(params) && run.beams.is_none())
+        .then(|| super::beams::from_origin(run.positions, o))
+}
+
+/// `run` with `beams` where it has none.
+pub(super) fn with_beams<'a>(run: &CloudRun<'a>, beams: Option<&'a [DVec3]>) -> CloudRun<'a> {
+    CloudRun {
+        beams: run.beams.or(beams),
+        ..*run
+    }
 }
 
 /// [`run`] on the run's k-NN graph `g`; `timer` started before the graph was built (its time is
@@ -234,7 +262,10 @@ fn run_on(
     g: Graph,
     mut timer: Timer,
 ) -> Result<CloudResult, DenoiseError> {
-    let mut stats = Stats::default();
+    let mut stats = Stats {
+        noise_estimate: guarded_qem(params).then_some(globals.noise),
+        ..Stats::default()
+    };
     let k = params.k();
     let taint = Taint::of(run, &g);
     let Graph {
@@ -245,7 +276,12 @@ fn run_on(
         capped,
         isolated,
         listed: _,
+        beams,
     } = g;
+    let beams = Beams {
+        dirs: beams.as_deref().filter(|_| guarded_qem(params)),
+        noise: globals.noise,
+    };
     let n = frame.positions.len();
     let duplicate: Vec<bool> = (0..n)
         .into_par_iter()
@@ -325,7 +361,7 @@ fn run_on(
                 (Some(d), true) => Within::Hops(d, most),
                 _ => Within::All,
             };
-            let mut fits = local_fits_within(&cur, &lists, within(near.fits));
+            let mut fits = local_fits_within(&cur, &lists, within(near.fits), beams);
             for (f, _) in fits.iter_mut().zip(&isolated).filter(|(_, i)| **i) {
                 *f = super::structure::LocalFit::isolated();
             }
@@ -371,6 +407,7 @@ fn run_on(
                 bound: &bound,
                 radii: &radii,
                 max_move: params.max_move,
+                beams,
             };
             let mut gain = None;
             for u in 0..sched.updates {
@@ -492,19 +529,29 @@ impl From<AllResult> for super::Output {
 /// # Errors
 /// Fewer finite points than k.
 pub fn run_all(positions: &[DVec3], params: &Params) -> Result<AllResult, DenoiseError> {
-    run_all_with(positions, params, None)
+    run_all_with(positions, params, PerPoint::default())
 }
 
-/// [`run_all`] with the points `held` marks (one flag per position, `--classes`) kept in place:
-/// they still serve as neighbours.
+/// What a caller knows of each point of a cloud beyond its position (one entry per position).
+#[derive(Debug, Clone, Copy, Default)]
+pub struct PerPoint<'a> {
+    /// Points that keep their position but still serve as neighbours (`--classes`).
+    pub held: Option<&'a [bool]>,
+    /// Each point's beam ([`CloudRun::beams`]; from a trajectory), zero where unknown.
+    pub beams: Option<&'a [DVec3]>,
+}
+
+/// [`run_all`] with the points `per.held` marks kept in place (they still serve as
+/// neighbours), and the beams `per.beams` gives.
 ///
 /// # Errors
 /// Fewer finite points than k.
 pub fn run_all_with(
     positions: &[DVec3],
     params: &Params,
-    held: Option<&[bool]>,
+    per: PerPoint,
 ) -> Result<AllResult, DenoiseError> {
+    let held = per.held;
     // The isolation radius (the typical radius's probes) is neighbour work: booked to
     // `neighbours` with the graph.
     let timer = Timer::start();
@@ -514,6 +561,7 @@ pub fn run_all_with(
     let pts: Vec<DVec3> = finite.iter().map(|&i| positions[i]).collect();
     let ties: Vec<u64> = finite.iter().map(|&i| i as u64).collect();
     let held: Option<Vec<bool>> = held.map(|h| finite.iter().map(|&i| h[i]).collect());
+    let beams: Option<Vec<DVec3>> = per.beams.map(|b| finite.iter().map(|&i| b[i]).collect());
     let origin = super::origin_of(&pts);
     let k = params.k();
     let kg = globals_k(params);
@@ -527,6 +575,7 @@ pub fn run_all_with(
         complete: None,
         wanted: None,
         held: None,
+        beams: None,
     };
     // Where the planner's sample is the whole cloud, the isolation radius is read from the run's
     // own lists (one k-NN pass, not two: the probes' pass was about 10 % of a 120 k-point run's
@@ -559,7 +608,10 @@ pub fn run_all_with(
         complete: None,
         wanted: None,
         held: held.as_deref(),
+        beams: beams.as_deref(),
     };
+    let own = own_beams(&r, params);
+    let r = with_beams(&r, own.as_deref());
     let result = if !needs_globals(params) {
         run_on(
             &r,
@@ -694,6 +746,7 @@ mod tests {
             complete: None,
             wanted: None,
             held: None,
+            beams: None,
         }
     }
 
@@ -798,6 +851,7 @@ mod tests {
             complete: None,
             wanted: None,
             held: None,
+            beams: None,
         };
         // A 12 × 12 corner of the 60 × 60 plane: 4 % of the points, so lists are computed
         // only within reach of it.
@@ -1128,7 +1182,15 @@ mod tests {
             .map(|i| i < 3600 && (i / 60) % 2 == 0)
             .collect();
         let params = Params::default();
-        let r = run_all_with(&pts, &params, Some(&held)).unwrap();
+        let r = run_all_with(
+            &pts,
+            &params,
+            PerPoint {
+                held: Some(&held),
+                beams: None,
+            },
+        )
+        .unwrap();
         let free = run_all(&pts, &params).unwrap();
         for i in 0..pts.len() {
             if held[i] {
@@ -1154,7 +1216,15 @@ mod tests {
         );
         assert!(unheld.iter().any(|&i| r.positions[i] != free.positions[i]));
         // Nothing held: the plain run.
-        let none = run_all_with(&pts, &params, Some(&vec![false; pts.len()])).unwrap();
+        let none = run_all_with(
+            &pts,
+            &params,
+            PerPoint {
+                held: Some(&vec![false; pts.len()]),
+                beams: None,
+            },
+        )
+        .unwrap();
         assert_eq!(none.positions, free.positions);
     }
 

@@ -181,6 +181,7 @@ impl FrozenJob {
             input_format: self.input_format.map(StoredFormat::format),
             output_format: Some(out),
             spec: self.spec.clone(),
+            trajectory: None,
         }
     }
 

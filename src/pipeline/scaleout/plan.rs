@@ -78,7 +78,8 @@ pub fn plan(
     let source = io::open(&input, req.input_format)?;
     let info = source.info().clone();
     drop(source);
-    if req.spec.params.mesh_mode(info.has_faces()) {
+    let spec = req.spec.for_format(info.format);
+    if spec.params.mesh_mode(info.has_faces()) {
         return Err(unsupported(
             "a mesh runs in memory on one node (its k-rings need every face); use qemd denoise",
         ));
@@ -105,7 +106,7 @@ pub fn plan(
             && e.input_id == input_id
             && e.input_format == input_format
             && e.output_format == output_format
-            && e.spec == req.spec
+            && e.spec == spec
             && e.memory_budget == req.memory_budget
             && e.tile_points == req.tile_points;
         if same {
@@ -127,7 +128,8 @@ pub fn plan(
         output: PathBuf::new(),
         input_format: req.input_format,
         output_format: None,
-        spec: req.spec.clone(),
+        spec: spec.clone(),
+        trajectory: None,
     };
     let opts = RunOptions {
         memory_budget: req.memory_budget,
@@ -142,10 +144,10 @@ pub fn plan(
         scratch::check_disk(
             &opts,
             n,
-            scratch::run_disk_per_point(req.spec.params.write_normals, info.schema.record_len),
+            scratch::run_disk_per_point(spec.params.write_normals, info.schema.record_len),
         )?;
     }
-    let per_point = bytes_per_point(&req.spec.params, info.schema.record_len);
+    let per_point = bytes_per_point(&spec.params, info.schema.record_len);
     let limits = plan_phase::Limits::new(&opts, per_point);
     let plan = plan_phase::plan(&job, &opts, &info, &limits)?;
     let stitch_ranges = if req.stitch_tasks {
@@ -159,7 +161,7 @@ pub fn plan(
         input_id,
         input_format,
         output_format,
-        spec: req.spec.clone(),
+        spec: spec.clone(),
         memory_budget: req.memory_budget,
         tile_points: req.tile_points,
         bytes_per_point: per_point,
