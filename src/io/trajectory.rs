@@ -127,7 +127,9 @@ impl Trajectory {
         if t1 <= t0 {
             return Some(p1);
         }
-        Some(p0.lerp(p1, (t - t0) / (t1 - t0)))
+        // p0 + (p1 - p0)·s rather than glam's lerp (p0·(1−s) + p1·s): a sensor that stands
+        // still then sits exactly where it stands.
+        Some(p0 + (p1 - p0) * ((t - t0) / (t1 - t0)))
     }
 }
 
