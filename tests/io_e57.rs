@@ -380,7 +380,7 @@ fn issue12_e57_from_other_formats_keeps_every_field() {
             "green",
             "blue",
             "intensity",
-            "qemd_label",
+            "label",
             "cartesian_invalid"
         ]
     );
@@ -390,7 +390,7 @@ fn issue12_e57_from_other_formats_keeps_every_field() {
             ("green", "green"),
             ("blue", "blue"),
             ("intensity", "intensity"),
-            ("label", "qemd_label"),
+            ("label", "label"),
         ] {
             assert_eq!(field(&c, a, i), field(&d, b, i), "{a} of point {i}");
         }
@@ -444,7 +444,7 @@ fn issue12_e57_noise_flag_is_an_extension_attribute() {
     sink.finish(&c.extras).unwrap();
     let d = Cloud::read(&q, None).unwrap();
     for i in 0..d.len() {
-        assert_eq!(field(&d, "qemd_noise", i), f64::from(u8::from(i % 3 == 0)));
+        assert_eq!(field(&d, "noise", i), f64::from(u8::from(i % 3 == 0)));
     }
     let Meta::E57(m) = &d.info.meta else { panic!() };
     assert_eq!(m.scans().len(), 2);
@@ -673,4 +673,129 @@ fn issue51_an_e57_pose_that_cannot_be_applied_is_refused() {
             "{err}"
         );
     }
+}
+
+/// A LAS file (PDRF 1) of `n` points, each with a class and its flags, intensity, return
+/// numbers, scan direction, edge of flight line, scan angle and a GPS time.
+fn las_with_classes(path: &Path, n: usize) -> Vec<u8> {
+    let mut b = las::Builder::default();
+    b.point_format = las::point::Format::new(1).unwrap();
+    let mut w = las::Writer::from_path(path, b.into_header().unwrap()).unwrap();
+    let mut r = rng(51);
+    let classes: Vec<u8> = (0..n).map(|i| [2, 3, 6, 7, 18][i % 5]).collect();
+    for (i, &c) in classes.iter().enumerate() {
+        w.write_point(las::Point {
+            x: r() * 10.0,
+            y: r() * 10.0,
+            z: r(),
+            intensity: (r() * 1000.0) as u16,
+            return_number: 1 + (i % 3) as u8,
+            number_of_returns: 3,
+            scan_direction: if i % 2 == 0 {
+                las::point::ScanDirection::LeftToRight
+            } else {
+                las::point::ScanDirection::RightToLeft
+            },
+            is_edge_of_flight_line: i % 7 == 0,
+            classification: las::point::Classification::new(c).unwrap(),
+            is_synthetic: i % 11 == 0,
+            is_key_point: i % 13 == 0,
+            is_withheld: i % 17 == 0,
+            scan_angle: (i % 61) as f32 - 30.0,
+            user_data: (i % 256) as u8,
+            point_source_id: 7,
+            gps_time: Some(r() * 100.0),
+            ..Default::default()
+        })
+        .unwrap();
+    }
+    w.close().unwrap();
+    classes
+}
+
+/// Issue 51: LAS → E57 → LAS gives each point its class back in the LAS classification field
+/// (it went to extra bytes, as `qemd_classification`), and every LAS attribute round-trips.
+#[test]
+fn issue51_e57_to_las_maps_the_classification_back() {
+    let d = tempfile::tempdir().unwrap();
+    let las_in = d.path().join("in.las");
+    let classes = las_with_classes(&las_in, 500);
+    let c = Cloud::read(&las_in, None).unwrap();
+    let e57 = d.path().join("mid.e57");
+    c.write(&e57, None).unwrap();
+    let m = Cloud::read(&e57, None).unwrap();
+    assert!(m.info.schema.field_index("classification").is_some());
+    assert!(m.info.schema.field_index("qemd_classification").is_none());
+    let las_out = d.path().join("out.las");
+    m.write(&las_out, None).unwrap();
+    let mut r = las::Reader::from_path(&las_out).unwrap();
+    // Extra bytes hold E57's own invalid-state attribute only: every LAS field is a LAS one.
+    let extras: Vec<String> = r
+        .header()
+        .vlrs()
+        .iter()
+        .filter(|v| v.user_id == "LASF_Spec" && v.record_id == 4)
+        .flat_map(|v| {
+            v.data.chunks(192).map(|d| {
+                String::from_utf8_lossy(&d[4..36])
+                    .trim_end_matches('\0')
+                    .to_string()
+            })
+        })
+        .collect();
+    assert_eq!(extras, ["cartesian_invalid"]);
+    let got = r.read_all().unwrap();
+    assert_eq!(got.classification().collect::<Vec<u8>>(), classes);
+    let orig = las::Reader::from_path(&las_in).unwrap().read_all().unwrap();
+    for (i, (a, b)) in orig.points().zip(got.points()).enumerate() {
+        let (a, mut b) = (a.unwrap(), b.unwrap());
+        // PDRF 6 stores the scan angle in 0.006° steps: the whole degree, within half a step.
+        assert!((a.scan_angle - b.scan_angle).abs() <= 0.003, "point {i}");
+        b.scan_angle = a.scan_angle;
+        assert!(
+            (a.x - b.x).abs() + (a.y - b.y).abs() + (a.z - b.z).abs() < 1e-6,
+            "point {i}"
+        );
+        (b.x, b.y, b.z) = (a.x, a.y, a.z);
+        assert_eq!(b.extra_bytes, [0], "point {i}: cartesian_invalid");
+        b.extra_bytes.clear();
+        assert_eq!(a, b, "point {i}: every LAS attribute round-trips");
+    }
+    assert_eq!(orig.len(), got.len());
+}
+
+/// Issue 51: pye57's `read_scan` reads an E57 qemd wrote from LAS without any option; its LAS
+/// attributes are the declared `qemd` extension's, which `read_scan_raw` skips only with
+/// `ignore_unsupported_fields=True`, as it skips E57's own `timeStamp` or `returnIndex`.
+#[test]
+#[ignore = "needs pip pye57"]
+fn issue51_pye57_reads_a_qemd_e57_from_las_without_options() {
+    let d = tempfile::tempdir().unwrap();
+    let las_in = d.path().join("in.las");
+    las_with_classes(&las_in, 500);
+    let e57 = d.path().join("from_las.e57");
+    crate::util::qemd_ok(&[
+        "denoise",
+        crate::util::s(&las_in),
+        "-o",
+        crate::util::s(&e57),
+    ]);
+    let out = python(
+        r#"
+import sys, pye57
+e = pye57.E57(sys.argv[1])
+d = e.read_scan(0)
+print(len(d["cartesianX"]))
+d = e.read_scan(0, intensity=True)
+print(len(d["intensity"]))
+raw = e.read_scan_raw(0, ignore_unsupported_fields=True)
+print(sorted(raw))
+print(sorted(e.get_header(0).point_fields))
+"#,
+        &[&e57],
+    );
+    let lines: Vec<&str> = out.lines().collect();
+    assert_eq!(lines[..2], ["500", "500"], "{out}");
+    assert!(lines[2].contains("'cartesianX'"), "{out}");
+    assert!(lines[3].contains("'qemd:classification'"), "{out}");
 }

@@ -23,7 +23,9 @@
 //! * **Every other attribute is a field**, raw (not normalised): `intensity`, `red`, `green`,
 //!   `blue`, `row`, `column`, `return_index`, `return_count`, `time`, the invalid-state flags
 //!   (`cartesian_invalid`, `spherical_invalid`, `intensity_invalid`, `color_invalid`,
-//!   `time_invalid`) and extension attributes (`<namespace>_<name>`). Types: E57 single → `f32`,
+//!   `time_invalid`) and extension attributes (`<namespace>_<name>`; qemd's own namespace reads
+//!   back as the bare field name it was written from, `qemd:classification` → `classification`,
+//!   unless that is a name listed above). Types: E57 single → `f32`,
 //!   double and scaled integers → `f64` (the scaled value), integers → the smallest integer type
 //!   that holds the declared range (`u8` for 0–255 colours), else `f64`. A field absent from a
 //!   scan is 0 in its points.
@@ -151,9 +153,43 @@ fn field_name(name: &RecordName) -> String {
         RecordName::TimeStamp => "time".into(),
         RecordName::IsTimeStampInvalid => "time_invalid".into(),
         RecordName::Unknown { namespace, name } if namespace.is_empty() => name.clone(),
+        // qemd's own attributes are the fields it wrote them from (issue 51: a LAS
+        // `classification` came back as `qemd_classification`, and a LAS writer put it in extra
+        // bytes), unless the name is one a standard attribute or the scan index reads as.
+        RecordName::Unknown { namespace, name }
+            if namespace == QEMD_NAMESPACE && !STANDARD_FIELDS.contains(&name.as_str()) =>
+        {
+            name.clone()
+        }
         RecordName::Unknown { namespace, name } => format!("{namespace}_{name}"),
     }
 }
+
+/// The field names the standard E57 attributes (and the scan index) read as: a `qemd`
+/// attribute of one of these names keeps its namespace prefix, so that it cannot merge with them.
+const STANDARD_FIELDS: [&str; 21] = [
+    "x",
+    "y",
+    "z",
+    "cartesian_invalid",
+    "range",
+    "azimuth",
+    "elevation",
+    "spherical_invalid",
+    "intensity",
+    "intensity_invalid",
+    "red",
+    "green",
+    "blue",
+    "color_invalid",
+    "row",
+    "column",
+    "return_count",
+    "return_index",
+    "time",
+    "time_invalid",
+    SCAN_FIELD,
+];
 
 /// True for the records that hold coordinates (they become positions, not fields).
 fn is_coordinate(name: &RecordName) -> bool {

@@ -19,6 +19,7 @@
 //! | `gps_time`, `time`, `timestamp` | GPS time (f64) | f32, f64, 8–32-bit integers |
 //! | `red`/`green`/`blue` (or `r`/`g`/`b`, `diffuse_red`/…), all three | RGB (PDRF 7) | u16; u8 scaled by 257 (0–255 onto 0–65535, exactly invertible) |
 //! | `nir` | NIR (PDRF 8) | u16 |
+//! | PDRF 0–5's `return_flags`, `classification`, `scan_angle_rank` (a schema with `return_flags`: a LAS source's fields through another format) | return numbers, scan direction and edge; class and its synthetic, key-point and withheld flags; scan angle (the nearest 0.006° step to the whole degree) | u8, u8, i8 |
 //!
 //! The point format is 6, 7 when RGB is mapped, 8 when NIR is. A field of a well-known name but
 //! another type (a float intensity, say) stays an extra-bytes field, and so does every other
@@ -43,6 +44,14 @@ pub(super) enum Slot {
     I16(usize),
     /// A double.
     F64(usize),
+    /// PDRF 0–5's `return_flags` byte: return number and number of returns into byte 14's
+    /// nibbles, scan direction and edge of flight line into bits 6 and 7 of byte 15.
+    LegacyReturns,
+    /// PDRF 0–5's `classification` byte: the class (bits 0–4) into byte 16, the synthetic,
+    /// key-point and withheld flags (bits 5–7) into bits 0–2 of byte 15.
+    LegacyClass,
+    /// PDRF 0–5's `scan_angle_rank` (whole degrees) as the scan angle in 0.006° units (i16 at 18).
+    AngleRank,
 }
 
 /// The plan for a foreign schema.
@@ -85,11 +94,15 @@ const CORE_NAMES: [&str; 22] = [
 /// Colour names, the nir name and format-specific names that are taken only in PDRF 7/8.
 const COLOUR_NAMES: [&str; 4] = ["red", "green", "blue", "nir"];
 
-/// The slot of a field named `name` of type `ty`, if it maps (colours aside).
-fn slot_of(name: &str, ty: ScalarType) -> Option<Slot> {
+/// The slot of a field named `name` of type `ty`, if it maps (colours aside); `legacy`: the
+/// schema has PDRF 0–5's `return_flags`, so its `classification` byte holds flags too.
+fn slot_of(name: &str, ty: ScalarType, legacy: bool) -> Option<Slot> {
     use ScalarType::*;
     let small_int = matches!(ty, I8 | U8 | I16 | U16 | I32 | U32);
     Some(match (name, ty) {
+        ("return_flags", U8) => Slot::LegacyReturns,
+        ("classification", U8) if legacy => Slot::LegacyClass,
+        ("scan_angle_rank", I8) => Slot::AngleRank,
         ("intensity", U8 | U16) => Slot::U16(12),
         ("return_number", U8) => Slot::Nibble(14, false),
         ("number_of_returns", U8) => Slot::Nibble(14, true),
@@ -133,13 +146,29 @@ pub(super) fn map(schema: &Schema) -> Mapping {
         .map(|(i, f)| (i, f.name.as_str(), f.ty))
         .collect();
     let mut core: Vec<(usize, Slot)> = Vec::new();
+    // The bytes (and of byte 15, the bits) a slot writes.
+    let bytes = |s: Slot| -> Vec<(usize, u8)> {
+        match s {
+            Slot::Byte(at) => vec![(at, 0xff)],
+            Slot::Nibble(at, high) => vec![(at, if high { 0xf0 } else { 0x0f })],
+            Slot::U16(at) | Slot::Colour8(at) | Slot::I16(at) => vec![(at, 0xff), (at + 1, 0xff)],
+            Slot::F64(at) => (at..at + 8).map(|b| (b, 0xff)).collect(),
+            Slot::LegacyReturns => vec![(14, 0xff), (15, 0xc0)],
+            Slot::LegacyClass => vec![(16, 0xff), (15, 0x07)],
+            Slot::AngleRank => vec![(18, 0xff), (19, 0xff)],
+        }
+    };
     let taken = |core: &[(usize, Slot)], s: Slot| {
-        core.iter().any(|&(_, t)| match (t, s) {
-            (Slot::Nibble(a, x), Slot::Nibble(b, y)) => a == b && x == y,
-            (Slot::Nibble(a, _), Slot::Byte(b)) | (Slot::Byte(b), Slot::Nibble(a, _)) => a == b,
-            (t, s) => t == s,
+        let want = bytes(s);
+        core.iter().any(|&(_, t)| {
+            bytes(t)
+                .iter()
+                .any(|&(a, m)| want.iter().any(|&(b, n)| a == b && m & n != 0))
         })
     };
+    let legacy = fields
+        .iter()
+        .any(|&(_, name, ty)| name == "return_flags" && ty == ScalarType::U8);
     // RGB only when all three channels are there with one mappable type.
     let mut rgb = [None; 3];
     for &(i, name, ty) in &fields {
@@ -171,7 +200,7 @@ pub(super) fn map(schema: &Schema) -> Mapping {
         }
     }
     for &(i, name, ty) in &fields {
-        if let Some(s) = slot_of(name, ty)
+        if let Some(s) = slot_of(name, ty, legacy)
             && !taken(&core, s)
         {
             core.push((i, s));
@@ -231,6 +260,20 @@ pub(super) fn store(rec: &mut [u8], slot: Slot, v: f64) -> Result<(), String> {
         Slot::Colour8(at) => rec[at..at + 2].copy_from_slice(&((v as u16) * 257).to_le_bytes()),
         Slot::I16(at) => rec[at..at + 2].copy_from_slice(&(v as i16).to_le_bytes()),
         Slot::F64(at) => rec[at..at + 8].copy_from_slice(&v.to_le_bytes()),
+        Slot::LegacyReturns => {
+            let b = v as u8;
+            rec[14] = (b & 0x07) | (((b >> 3) & 0x07) << 4);
+            rec[15] |= b & 0xc0;
+        }
+        Slot::LegacyClass => {
+            let b = v as u8;
+            rec[16] = b & 0x1f;
+            rec[15] |= b >> 5;
+        }
+        Slot::AngleRank => {
+            let units = (v / 0.006).round() as i16;
+            rec[18..20].copy_from_slice(&units.to_le_bytes());
+        }
     }
     Ok(())
 }
@@ -318,5 +361,44 @@ mod tests {
         assert_eq!(&rec[30..32], &65535u16.to_le_bytes());
         store(&mut rec, Slot::I16(18), -300.0).unwrap();
         assert_eq!(&rec[18..20], &(-300i16).to_le_bytes());
+    }
+
+    /// Issue 51: PDRF 0–5's bytes (a LAS source through E57, PLY, …) become PDRF 6's fields, the
+    /// class's flags into the flags byte, not into the class.
+    #[test]
+    fn issue51_legacy_las_fields_map_to_pdrf6() {
+        use ScalarType::*;
+        let m = map(&schema(&[
+            ("return_flags", U8),
+            ("classification", U8),
+            ("scan_angle_rank", I8),
+            ("return_numbers", U8),
+        ]));
+        assert_eq!(
+            m.core,
+            [
+                (3, Slot::LegacyReturns),
+                (4, Slot::LegacyClass),
+                (5, Slot::AngleRank)
+            ]
+        );
+        assert_eq!(m.extras, [(6, "return_numbers".to_string())]);
+        // Without `return_flags`, `classification` is PDRF 6's whole byte.
+        let plain = map(&schema(&[("classification", U8)]));
+        assert_eq!(plain.core, [(3, Slot::Byte(16))]);
+        let mut rec = [0u8; 30];
+        // Return 2 of 3, scan direction, edge; class 2 (ground), synthetic and withheld.
+        store(
+            &mut rec,
+            Slot::LegacyReturns,
+            f64::from(2 | (3 << 3) | 0x40 | 0x80),
+        )
+        .unwrap();
+        store(&mut rec, Slot::LegacyClass, f64::from(2 | 0x20 | 0x80)).unwrap();
+        store(&mut rec, Slot::AngleRank, -12.0).unwrap();
+        assert_eq!(rec[14], 2 | (3 << 4));
+        assert_eq!(rec[15], 0x40 | 0x80 | 0x01 | 0x04);
+        assert_eq!(rec[16], 2);
+        assert_eq!(&rec[18..20], &(-2000i16).to_le_bytes());
     }
 }
