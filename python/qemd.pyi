@@ -8,7 +8,7 @@ with a one-line message. The GIL is released while computing; Ctrl-C stops a run
 """
 
 from os import PathLike
-from typing import Any, Literal, Optional, Tuple, Union, overload
+from typing import Any, Literal, Optional, Sequence, Tuple, Union, overload
 
 import numpy as np
 import numpy.typing as npt
@@ -54,6 +54,7 @@ def denoise(
     iterations: Optional[int] = None,
     outliers: Optional[Literal["off", "remove"]] = None,
     outlier_alpha: Optional[float] = None,
+    sensor_origin: Optional[Union[str, Sequence[float]]] = None,
 ) -> Points: ...
 @overload
 def denoise(
@@ -82,7 +83,9 @@ def denoise(points: Points, *, faces: Optional[Faces] = None, **params: Any) -> 
         The spec's fields: ``knn`` (default 16 on clouds), ``method``, ``planes``, ``filter``,
         ``updates``, ``mu``, ``sigma_r``, ``volume``, ``guard``, ``max_move``, ``radius``, ``rings``,
         ``normals``, ``solve``, ``eps``, ``lambda`` (pass it as ``**{"lambda": 0.1}``: it is a
-        Python keyword), ``iterations``, ``paper``, ``outliers``, ``outlier_alpha``.
+        Python keyword), ``iterations``, ``paper``, ``outliers``, ``outlier_alpha``, ``sensor_origin`` (the
+        scanner's position: ``[x, y, z]``, ``"x,y,z"`` or ``"none"``; returns then move along
+        their beams).
         :func:`spec_fields` lists them. ``write_normals`` applies to files
         (:func:`denoise_file`) and raises here.
 

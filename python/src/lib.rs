@@ -76,7 +76,7 @@ fn threads_of(options: &[(String, Bound<'_, PyAny>)]) -> PyResult<Option<usize>>
 /// threads: worker threads (default: all cores); the result is the same for any count.
 /// **params: the parameter spec's fields (knn, method, planes, filter, updates, mu, sigma_r,
 ///     volume, guard, max_move, radius, rings, normals, solve, eps, lambda, iterations, paper, outliers,
-///     outlier_alpha), as the CLI's flags and the API's JSON fields name them; write_normals
+///     outlier_alpha, sensor_origin), as the CLI's flags and the API's JSON fields name them; write_normals
 ///     applies to files (denoise_file) and is refused here.
 ///
 /// Returns the denoised (N, 3) array in the input's dtype. With outliers="remove" the outliers'

@@ -8,10 +8,10 @@
 //! pytest suite (`python/tests`) tests these messages against the CLI's.
 
 use pyo3::prelude::*;
-use pyo3::types::{PyBool, PyDict, PyFloat, PyInt, PyString};
+use pyo3::types::{PyBool, PyDict, PyFloat, PyInt, PyList, PyString, PyTuple};
 use qem_denoise::pipeline::{DEFAULT_OUTLIER_ALPHA, DenoiseSpec, SpecOverlay};
 use serde::Deserialize as _;
-use serde::de::value::{Error as DeError, MapDeserializer, StringDeserializer};
+use serde::de::value::{Error as DeError, MapDeserializer, SeqDeserializer, StringDeserializer};
 use serde::de::{self, IntoDeserializer, Visitor};
 
 /// A keyword's value, as the spec may read it.
@@ -23,6 +23,8 @@ pub enum Value {
     UInt(u64),
     Float(f64),
     Str(String),
+    /// A list or tuple of such values (a sensor origin's `[x, y, z]`).
+    Seq(Vec<Value>),
 }
 
 impl Value {
@@ -48,6 +50,17 @@ impl Value {
             v.extract::<f64>()
                 .map(Value::Float)
                 .map_err(|_| type_name(v))
+        } else if v.is_instance_of::<PyList>() || v.is_instance_of::<PyTuple>() {
+            let items: Vec<Bound<'_, PyAny>> = v.extract().map_err(|_| type_name(v))?;
+            items
+                .iter()
+                .map(|x| match Value::from_py(x)? {
+                    // One level: the spec has no field of nested lists.
+                    Value::Seq(_) => Err(type_name(x)),
+                    one => Ok(one),
+                })
+                .collect::<Result<_, _>>()
+                .map(Value::Seq)
         } else {
             Err(type_name(v))
         }
@@ -71,6 +84,7 @@ impl<'de> de::Deserializer<'de> for Value {
             Value::UInt(u) => v.visit_u64(u),
             Value::Float(f) => v.visit_f64(f),
             Value::Str(s) => v.visit_string(s),
+            Value::Seq(s) => v.visit_seq(SeqDeserializer::new(s.into_iter())),
         }
     }
 
@@ -152,7 +166,7 @@ pub fn split_kwargs<'py>(
             continue;
         }
         let value = Value::from_py(&v).map_err(|t| {
-            format!("invalid parameter {name}: a number, a bool, a string or None, not {t}")
+            format!("invalid parameter {name}: a number, a bool, a string, a list of numbers or None, not {t}")
         })?;
         params.push((name, value));
     }

@@ -120,6 +120,9 @@ def sphere():
         ({"method": "bilateral"}, ["--method", "bilateral"]),
         ({"paper": True}, ["--paper"]),
         ({"guard": False, "mu": 0.25, "max_move": 0.005}, ["--no-guard", "--mu", "0.25", "--max-move", "0.005"]),
+        # issue 47: a station's beams, given as a list or as the CLI's text.
+        ({"sensor_origin": [0.5, -0.25, 4.0]}, ["--sensor-origin", "0.5,-0.25,4"]),
+        ({"sensor_origin": "0.5,-0.25,4"}, ["--sensor-origin", "0.5,-0.25,4"]),
     ],
 )
 def test_array_equals_cli_bytes(tmp_path, sphere, params, flags):
