@@ -802,6 +802,18 @@ fn harm(a: HarmArgs) -> Result<()> {
             let classes =
                 scans::classes_of(&input).with_context(|| a.input.display().to_string())?;
             let h = scans::harm(&input, &output, &classes).with_context(ctx)?;
+            if let qem_denoise::eval::pairing::Pairing::Attributes {
+                fields,
+                by_position,
+            } = &h.pairing
+            {
+                eprintln!(
+                    "qemd: {} is reordered; its points were paired by {} ({by_position} points \
+                     alike in those by position)",
+                    a.output.display(),
+                    fields.join(", ")
+                );
+            }
             if a.json {
                 println!("{}", serde_json::to_string_pretty(&h)?);
             } else {

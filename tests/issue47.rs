@@ -142,3 +142,68 @@ fn issue47_sweep_formats_in_the_sensor_frame() {
         assert!(first.ends_with(" 0 0 0"), "{first}");
     }
 }
+
+#[test]
+fn issue47_harm_pairs_copc_output_by_gps_time() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = |n: &str| dir.path().join(n);
+    qemd_ok(&[
+        "synth",
+        "lidar",
+        "--preset",
+        "vlp16",
+        "--density",
+        "0.3",
+        "--length",
+        "30",
+        "-o",
+        s(&p("scan.las")),
+    ]);
+    qemd_ok(&[
+        "denoise",
+        s(&p("scan.las")),
+        "-o",
+        s(&p("out.copc.laz")),
+        "-q",
+    ]);
+    let o = qemd_ok(&["harm", s(&p("scan.las")), s(&p("out.copc.laz")), "--json"]);
+    let h: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(h["pairing"]["by"], "attributes", "{h}");
+    let all = h["rows"].as_array().unwrap().last().unwrap();
+    // The same denoising written as LAS (order kept) measures the same moves.
+    qemd_ok(&["denoise", s(&p("scan.las")), "-o", s(&p("out.las")), "-q"]);
+    let o = qemd_ok(&["harm", s(&p("scan.las")), s(&p("out.las")), "--json"]);
+    let kept: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(kept["pairing"]["by"], "index");
+    let kept_all = kept["rows"].as_array().unwrap().last().unwrap();
+    assert_eq!(all["relative"], kept_all["relative"], "{all} vs {kept_all}");
+    assert!(all["relative"]["max"].as_f64().unwrap() < 1.0);
+    // The XYZ output keeps x, y, z only: it pairs by index, unchecked …
+    qemd_ok(&["denoise", s(&p("scan.las")), "-o", s(&p("out.xyz")), "-q"]);
+    let rows: Vec<String> = std::fs::read_to_string(p("out.xyz"))
+        .unwrap()
+        .lines()
+        .filter(|l| !l.starts_with('#'))
+        .map(|l| l.split_whitespace().take(3).collect::<Vec<_>>().join(" "))
+        .collect();
+    std::fs::write(p("plain.xyz"), rows.join("\n") + "\n").unwrap();
+    let o = qemd_ok(&["harm", s(&p("scan.las")), s(&p("plain.xyz")), "--json"]);
+    let plain: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(plain["pairing"]["by"], "unchecked", "{plain}");
+    let plain_all = plain["rows"].as_array().unwrap().last().unwrap();
+    assert!(
+        plain_all["relative"]["max"].as_f64().unwrap() < 1.0,
+        "{plain_all}"
+    );
+    // … and the same points reversed are refused in one line naming the file.
+    let reversed: Vec<&str> = rows.iter().rev().map(String::as_str).collect();
+    std::fs::write(p("reversed.xyz"), reversed.join("\n") + "\n").unwrap();
+    let o = qemd(&["harm", s(&p("scan.las")), s(&p("reversed.xyz"))]);
+    assert!(!o.status.success());
+    let err = String::from_utf8(o.stderr).unwrap();
+    assert_eq!(err.trim_end().lines().count(), 1, "{err}");
+    assert!(
+        err.contains("reversed.xyz") && err.contains("not in the input's order"),
+        "{err}"
+    );
+}

@@ -17,6 +17,8 @@
 //! * [`spectrum`]: the paper's frequency-response analysis on a height-field patch (2D FFT of
 //!   resampled height fields, radially averaged gain).
 //! * [`pairs`]: the real clean/noisy benchmark pairs, measured per method.
+//! * [`pairing`]: which output point is which input point (by index, checked on the attributes
+//!   both keep, or by those attributes when the output is reordered).
 //! * [`scans`]: the real-scan protocol (`qemd harm`): displacement over r16 on the scan as it is,
 //!   and noise removed from the scan plus known noise, per class.
 //! * [`lidar`]: a LiDAR simulator with exact truth (a parametric street, spinning, mobile,
@@ -38,6 +40,7 @@ pub mod lidar;
 pub(crate) mod methods;
 pub mod metrics;
 pub mod noise;
+pub mod pairing;
 pub mod pairs;
 pub mod plot;
 pub mod render;
@@ -106,6 +109,9 @@ pub enum EvalError {
     /// Clean and denoised meshes do not correspond vertex by vertex.
     #[error("the meshes do not correspond: {0}")]
     Mismatch(String),
+    /// A method's output does not pair with its input point by point.
+    #[error("{0}")]
+    Pairing(String),
     /// The geometry is degenerate for the requested operation (zero scale length, no area…).
     #[error("degenerate input: {0}")]
     Degenerate(String),

@@ -13,6 +13,11 @@
 //!   never worse than doing nothing); for planar points (surface variation of the clean 16-NN
 //!   ≤ 0.005) the RMS distance to the clean local plane, denoised over noisy.
 //!
+//! The output's points pair with the input's through [`pair`](super::pairing::pair): by index
+//! when the attributes both files keep (GPS time, intensity, …) agree point by point, by those
+//! attributes when the output is reordered (COPC) and they identify every point, and otherwise
+//! the output is refused.
+//!
 //! Classes are the scan's own where it has them (LAS `classification`, or a `class`,
 //! `classification` or `label` field), the guarded operator's structure classes of the clean scan
 //! otherwise. Non-finite points are skipped.
@@ -21,6 +26,7 @@ use glam::DVec3;
 use rayon::prelude::*;
 
 use super::EvalError;
+use super::pairing::{Pairing, pair};
 use crate::denoise::structure::{Structure, classify, local_fits};
 use crate::geometry::pca_fit;
 use crate::io::Cloud;
@@ -185,6 +191,8 @@ pub struct HarmRow {
 pub struct Harm {
     /// Where the classes come from.
     pub classes: ClassSource,
+    /// How the output's points were paired with the input's.
+    pub pairing: Pairing,
     /// One row per class, then `all`.
     pub rows: Vec<HarmRow>,
 }
@@ -209,13 +217,14 @@ fn check_same(a: &Cloud, b: &Cloud, what: &'static str) -> Result<(), EvalError>
 /// Different point counts, fewer than 16 finite points.
 pub fn harm(input: &Cloud, output: &Cloud, classes: &Classes) -> Result<Harm, EvalError> {
     check_same(input, output, "output")?;
+    let (order, pairing) = pair(input, output)?;
     let (pts, map) = finite(&input.positions);
     let graph = Graph::new(&pts)?;
     let d: Vec<(f64, f64)> = (0..pts.len())
         .into_par_iter()
         .map(|j| {
             let i = map[j];
-            let q = output.positions[i];
+            let q = output.positions[order[i]];
             let m = if q.is_finite() {
                 (q - pts[j]).length()
             } else {
@@ -253,6 +262,7 @@ pub fn harm(input: &Cloud, output: &Cloud, classes: &Classes) -> Result<Harm, Ev
     per(None, "all".into());
     Ok(Harm {
         classes: classes.source,
+        pairing,
         rows,
     })
 }
@@ -302,6 +312,15 @@ pub fn noise_removed(
 ) -> Result<NoiseRemoved, EvalError> {
     check_same(clean, noisy, "noisy input")?;
     check_same(clean, denoised, "denoised output")?;
+    // The noisy scan pairs with the clean one; the denoised with the noisy.
+    let (to_noisy, _) = pair(clean, noisy)?;
+    let (to_denoised, _) = pair(noisy, denoised)?;
+    // Both in the clean scan's order.
+    let noisy: Vec<DVec3> = to_noisy.iter().map(|&k| noisy.positions[k]).collect();
+    let denoised: Vec<DVec3> = to_noisy
+        .iter()
+        .map(|&k| denoised.positions[to_denoised[k]])
+        .collect();
     let (pts, map) = finite(&clean.positions);
     let graph = Graph::new(&pts)?;
     // The clean local plane of every point: PCA of its clean 16-NN.
@@ -314,17 +333,17 @@ pub fn noise_removed(
             (f.has_plane() && f.values[0] <= PLANAR * total).then(|| (f.vectors[0], v + f.centroid))
         })
         .collect();
-    let err = |c: &Cloud, j: usize| {
-        let q = c.positions[map[j]];
+    let err = |c: &[DVec3], j: usize| {
+        let q = c[map[j]];
         if q.is_finite() {
             (q - pts[j]).length()
         } else {
             f64::INFINITY
         }
     };
-    let row = |code: u32, name: String, sel: &[usize], f: &dyn Fn(&Cloud, usize) -> f64| {
-        let noisy_rms = rms(sel.iter().map(|&j| f(noisy, j)));
-        let den_rms = rms(sel.iter().map(|&j| f(denoised, j)));
+    let row = |code: u32, name: String, sel: &[usize], f: &dyn Fn(&[DVec3], usize) -> f64| {
+        let noisy_rms = rms(sel.iter().map(|&j| f(&noisy, j)));
+        let den_rms = rms(sel.iter().map(|&j| f(&denoised, j)));
         NoiseRow {
             class: code,
             name,
@@ -348,9 +367,9 @@ pub fn noise_removed(
     let all: Vec<usize> = (0..pts.len()).collect();
     rows.push(row(u32::MAX, "all".into(), &all, &err));
     let planar_sel: Vec<usize> = (0..pts.len()).filter(|&j| planes[j].is_some()).collect();
-    let to_plane = |c: &Cloud, j: usize| {
+    let to_plane = |c: &[DVec3], j: usize| {
         let (n, p) = planes[j].expect("planar points only");
-        let q = c.positions[map[j]];
+        let q = c[map[j]];
         if q.is_finite() {
             n.dot(q - p).abs()
         } else {
@@ -424,6 +443,46 @@ mod tests {
             )
             .is_err()
         );
+    }
+
+    #[test]
+    fn issue47_harm_pairs_a_reordered_output_by_gps_time() {
+        use crate::eval::pairing::timed_at;
+        // A 10 × 10 grid with a GPS time per point; the output moves point 55 by 1 and is
+        // written in reverse order (as an octree writer reorders).
+        let with_times = |pos: Vec<DVec3>, times: Vec<f64>| timed_at(&pos, &times, 0);
+        let pos = grid(10);
+        let times: Vec<f64> = (0..100).map(|i| 1000.0 + i as f64 * 1e-3).collect();
+        let input = with_times(pos.clone(), times.clone());
+        let mut moved = pos.clone();
+        moved[55].z += 1.0;
+        let output = with_times(
+            moved.iter().rev().copied().collect(),
+            times.iter().rev().copied().collect(),
+        );
+        let classes = classes_of(&input).unwrap();
+        let h = harm(&input, &output, &classes).unwrap();
+        assert!(matches!(h.pairing, Pairing::Attributes { .. }));
+        let all = h.rows.last().unwrap();
+        assert_eq!(all.absolute.max, 1.0);
+        assert_eq!(all.relative.p50, 0.0);
+        // With a time repeated, the two points alike pair by position (they lie 1 apart).
+        let mut dup = times.clone();
+        dup[1] = dup[0];
+        let input2 = with_times(pos.clone(), dup.clone());
+        let output2 = with_times(
+            moved.iter().rev().copied().collect(),
+            dup.iter().rev().copied().collect(),
+        );
+        let h2 = harm(&input2, &output2, &classes).unwrap();
+        assert_eq!(h2.rows, h.rows);
+        assert!(matches!(
+            h2.pairing,
+            Pairing::Attributes { by_position: 2, .. }
+        ));
+        // The known-noise table pairs the same way.
+        let n = noise_removed(&input, &input, &output, &classes).unwrap();
+        assert!((n.rows.last().unwrap().denoised - 0.1).abs() < 1e-12);
     }
 
     #[test]
