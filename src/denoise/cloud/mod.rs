@@ -47,6 +47,7 @@
 mod globals;
 mod graph;
 mod hops;
+mod program;
 mod taint;
 
 pub use globals::{
@@ -292,16 +293,8 @@ fn run_on(
     let knn_mean: Vec<f64> = (0..n)
         .into_par_iter()
         .map(|j| {
-            let others = lists.get(j).iter().filter(|&&u| u as usize != j);
-            let (mut sum, mut count) = others.fold((0.0, 0usize), |(s, c), &u| {
-                (s + index.dist2(j, u as usize).sqrt(), c + 1)
-            });
-            if capped[j] {
-                let missing = (k - 1).saturating_sub(count);
-                sum += missing as f64 * run.isolation.unwrap_or(0.0);
-                count += missing;
-            }
-            if count == 0 { 0.0 } else { sum / count as f64 }
+            let dist2 = |u: u32| index.dist2(j, u as usize);
+            program::knn_mean_of(lists.get(j), j, dist2, capped[j], (k, run.isolation))
         })
         .collect();
     drop(index);
@@ -495,6 +488,94 @@ fn run_on(
     })
 }
 
+/// [`run`] of a whole cloud (no region, no wanted points) on its k-NN graph `g`, as the passes
+/// of a [`program::Program`] executed one after the other over every point; `timer` started
+/// before the graph was built (its time is booked to `neighbours`).
+fn run_whole(
+    run: &CloudRun,
+    params: &Params,
+    globals: &Globals,
+    g: Graph,
+    mut timer: Timer,
+) -> Result<CloudResult, DenoiseError> {
+    use program::{Program, flag};
+    let mut stats = Stats {
+        noise_estimate: guarded_qem(params).then_some(globals.noise),
+        ..Stats::default()
+    };
+    let k = params.k();
+    let Graph {
+        frame,
+        lists,
+        radii,
+        index,
+        capped,
+        isolated,
+        listed: _,
+        beams,
+    } = g;
+    let n = frame.positions.len();
+    let prog = Program::new(params);
+    let mut st = prog.state(n, false);
+    let held = |j: usize| run.held.is_some_and(|h| h[frame.order[j] as usize]);
+    st.flags = (0..n)
+        .into_par_iter()
+        .map(|j| {
+            let mut f = 0;
+            if isolated[j] {
+                f |= flag::ISOLATED;
+            }
+            if capped[j] {
+                f |= flag::CAPPED;
+            }
+            if held(j) {
+                f |= flag::HELD;
+            }
+            if is_duplicate(&frame.positions, &lists, &frame.ties, j) {
+                f |= flag::DUPLICATE;
+            }
+            f
+        })
+        .collect();
+    st.knn_mean = (0..n)
+        .into_par_iter()
+        .map(|j| {
+            let dist2 = |u: u32| index.dist2(j, u as usize);
+            program::knn_mean_of(lists.get(j), j, dist2, capped[j], (k, run.isolation))
+        })
+        .collect();
+    drop(index);
+    st.radii = radii;
+    st.ties.clone_from(&frame.ties);
+    st.pos[0].clone_from(&frame.positions);
+    st.beams = beams.filter(|_| guarded_qem(params)).unwrap_or_default();
+    timer.lap("neighbours", &mut stats);
+    check_cancel()?;
+    for &p in &prog.passes {
+        prog.run(p, &mut st, &lists, (params, globals), program::At::All(n));
+        prog.release(p, &mut st);
+        timer.lap(p.phase(), &mut stats);
+        check_cancel()?;
+    }
+    let positions: Vec<DVec3> = (0..n).map(|j| prog.finish(&mut st, params, j)).collect();
+    let bit = |f: u8| -> Vec<bool> { st.flags.iter().map(|&x| x & f != 0).collect() };
+    let guard = guarded_qem(params);
+    Ok(CloudResult {
+        positions: frame.restore(&positions),
+        exact: vec![true; n],
+        knn_mean: frame.restore(&st.knn_mean),
+        duplicate: frame.restore(&bit(flag::DUPLICATE)),
+        degenerate: frame.restore(&bit(flag::DEGENERATE)),
+        stayed: frame.restore(&st.stayed),
+        structure: guard.then(|| {
+            let c: Vec<u8> = st.classes[0].iter().map(|&c| c as u8).collect();
+            frame.restore(&c)
+        }),
+        normals: params.write_normals.then(|| frame.restore(&st.written)),
+        stats,
+    })
+}
+
 /// What [`run_all`] gives, one entry per input position.
 #[derive(Debug, Clone)]
 pub struct AllResult {
@@ -613,7 +694,7 @@ pub fn run_all_with(
     let own = own_beams(&r, params);
     let r = with_beams(&r, own.as_deref());
     let result = if !needs_globals(params) {
-        run_on(
+        run_whole(
             &r,
             params,
             &Globals::default(),
@@ -635,12 +716,12 @@ pub fn run_all_with(
         let n = pts.len() as u64;
         let sample = |i: usize| !guarded_qem(params) || in_noise_sample(ties[i], n);
         let globals = partial_of(params, &g, kg, sample).finish();
-        run_on(&r, params, &globals, g, timer)?
+        run_whole(&r, params, &globals, g, timer)?
     } else {
         let globals = globals_partial(&r, params, pts.len() as u64, |_, _| true)?
             .0
             .finish();
-        run_on(&r, params, &globals, graph(&r, k, 0, None)?, timer)?
+        run_whole(&r, params, &globals, graph(&r, k, 0, None)?, timer)?
     };
     let mut stats = Stats::default();
     stats.merge(&result.stats);
