@@ -17,7 +17,8 @@ use qem_denoise::points::ScalarType;
 
 use crate::util::{listing, put, qemd, s};
 
-/// The names of the five values in PLY (and text), PCD, LAS and E57 output.
+/// The names of the five values in PLY (and text), PCD, LAS and E57 output (E57 as read back:
+/// qemd's own `qemd:` fields read under the names they were written from).
 const PLY: [&str; 5] = ["nx", "ny", "nz", "curvature", "structure"];
 const PCD: [&str; 5] = ["normal_x", "normal_y", "normal_z", "curvature", "structure"];
 const LAS: [&str; 5] = ["NormalX", "NormalY", "NormalZ", "Curvature", "Structure"];
@@ -25,8 +26,8 @@ const E57: [&str; 5] = [
     "nor_normalX",
     "nor_normalY",
     "nor_normalZ",
-    "qemd_curvature",
-    "qemd_structure",
+    "curvature",
+    "structure",
 ];
 
 struct Rng(u64);
