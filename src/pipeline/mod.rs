@@ -162,8 +162,6 @@ pub fn run(job: &Job, opts: &RunOptions) -> Result<Report, PipelineError> {
     run_file(job, opts)
 }
 
-/// Refuses written normals towards an output format that cannot hold them, before any work, when
-/// the format is known from the job or the output's extension (the sink refuses it otherwise).
 /// Refuses a job with a trajectory (`--trajectory`) for `why`.
 fn refuse_trajectory(job: &Job, why: &str) -> Result<(), PipelineError> {
     match &job.trajectory {
@@ -176,6 +174,8 @@ fn refuse_trajectory(job: &Job, why: &str) -> Result<(), PipelineError> {
     }
 }
 
+/// Refuses written normals towards an output format that cannot hold them, before any work, when
+/// the format is known from the job or the output's extension (the sink refuses it otherwise).
 fn refuse_normals_early(job: &Job) -> Result<(), PipelineError> {
     let format = job
         .output_format
