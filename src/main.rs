@@ -413,6 +413,29 @@ fn unit(report: &pipeline::Report) -> [&'static str; 2] {
     }
 }
 
+/// Why a point run that read points moved none of them, when the input's stored coordinate
+/// grid explains it: the scan noise estimate `noise` (which bounds every guarded step) is below
+/// the grid's coarsest axis, so nearby returns share their stored values and look noiseless
+/// (issue 51: `f32` E57 coordinates at UTM magnitude are 0.5 apart in northing). `None` when
+/// something moved, the input cannot be read again (a stream) or its grid is finer than the
+/// noise.
+fn nothing_moved(report: &pipeline::Report, job: &Job, noise: f64) -> Option<String> {
+    if report.mode == "mesh" || report.stats.moved > 0 || report.points_in == 0 {
+        return None;
+    }
+    if io::is_stream_input(&job.input) {
+        return None;
+    }
+    let grid = io::resolution::coordinate_resolution(&job.input, job.input_format).ok()?;
+    let coarsest = grid.into_iter().fold(0.0, f64::max);
+    (noise < coarsest).then(|| {
+        format!(
+            "qemd: nothing moved: the scan noise estimate {noise:.3e} is below the input's coordinate resolution (x {:.3e}, y {:.3e}, z {:.3e} input units, the smallest step between stored values), so nearby points share their stored values and every step is bounded to zero; store the coordinates more finely (doubles, or scaled integers with an offset near the data, as LAS does) — f32 coordinates at UTM magnitudes are this coarse",
+            grid[0], grid[1], grid[2]
+        )
+    })
+}
+
 /// How a run went, for its summary: `mesh, 1200 faces`, `point cloud in memory`, `point cloud
 /// in 3 tiles`.
 fn run_kind(report: &pipeline::Report) -> String {
@@ -537,6 +560,9 @@ fn denoise(a: DenoiseArgs) -> Result<()> {
                 "qemd: scan noise estimate {noise:.3e} (input units), {beams}; {} steps bounded",
                 s.bounded
             );
+            if let Some(why) = nothing_moved(&report, &job, noise) {
+                eprintln!("{why}");
+            }
         }
         if report.normals == pipeline::NormalsAction::Cleared {
             eprintln!(

@@ -799,3 +799,89 @@ print(sorted(e.get_header(0).point_fields))
     assert!(lines[2].contains("'cartesianX'"), "{out}");
     assert!(lines[3].contains("'qemd:classification'"), "{out}");
 }
+
+/// A ground patch at UTM scale (x 515 370, northing 4 918 340) with 1 cm of noise, its
+/// coordinates stored as E57 singles (`f32`, as pye57 writes them: 0.5 m apart in northing) or
+/// doubles.
+fn utm_patch(path: &Path, single: bool, n: usize) {
+    let mut e = E57Writer::from_file(path, "{utm-guid}").unwrap();
+    let ty = if single {
+        RecordDataType::Single {
+            min: None,
+            max: None,
+        }
+    } else {
+        RecordDataType::Double {
+            min: None,
+            max: None,
+        }
+    };
+    let proto = [
+        RecordName::CartesianX,
+        RecordName::CartesianY,
+        RecordName::CartesianZ,
+    ]
+    .map(|name| Record {
+        name,
+        data_type: ty.clone(),
+    })
+    .to_vec();
+    let mut pc = e.add_pointcloud("{utm-scan}", proto).unwrap();
+    let mut r = rng(51);
+    let value = |v: f64| {
+        if single {
+            RecordValue::Single(v as f32)
+        } else {
+            RecordValue::Double(v)
+        }
+    };
+    for _ in 0..n {
+        let (x, y) = (3.0 * r(), 3.0 * r());
+        let noise = 0.01 * (r() + r() + r() - 1.5) * 2.0;
+        let z = 2330.0 + 0.1 * x + 0.05 * y + noise;
+        pc.add_point(vec![value(515_370.0 + x), value(4_918_340.0 + y), value(z)])
+            .unwrap();
+    }
+    pc.finalize().unwrap();
+    e.finalize().unwrap();
+}
+
+#[test]
+fn issue51_an_f32_utm_e57_that_moves_nothing_says_why() {
+    let d = tempfile::tempdir().unwrap();
+    let single = d.path().join("single.e57");
+    utm_patch(&single, true, 8000);
+    let out = d.path().join("single.out.e57");
+    let o = crate::util::qemd_ok(&[
+        "denoise",
+        crate::util::s(&single),
+        "-o",
+        crate::util::s(&out),
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("(0 moved"), "{err}");
+    let why: Vec<&str> = err
+        .lines()
+        .filter(|l| l.contains("nothing moved"))
+        .collect();
+    assert_eq!(why.len(), 1, "{err}");
+    assert!(
+        why[0].contains("below the input's coordinate resolution") && why[0].contains("y 5.000e-1"),
+        "{err}"
+    );
+    // The same patch stored as doubles moves points, and the line is not there.
+    let double = d.path().join("double.e57");
+    utm_patch(&double, false, 8000);
+    let out = d.path().join("double.out.e57");
+    let o = crate::util::qemd_ok(&[
+        "denoise",
+        crate::util::s(&double),
+        "-o",
+        crate::util::s(&out),
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !err.contains("(0 moved") && !err.contains("nothing moved"),
+        "{err}"
+    );
+}

@@ -97,6 +97,7 @@ pub mod pcd;
 pub mod ply;
 pub mod raw;
 pub mod reader;
+pub mod resolution;
 pub mod sniff;
 pub(crate) mod tally;
 pub mod text;
